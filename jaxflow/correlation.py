@@ -1,0 +1,85 @@
+"""PV-RAFT's point-voxel correlation.
+
+Once per pair, `truncated_correlation` keeps for every pc1 point the `truncate_k` largest
+feature correlations with pc2 and the xyz of those candidates. At every iteration,
+`PointVoxelCorrelation` looks them up around the current estimate y = pc1 + flow:
+- point branch: the `knn` candidates nearest to y, [corr, xyz - y] -> MLP -> max;
+- voxel branch: per level, 3x3x3 cells of size base_scale * 2**level centred on y, each holding
+  the MEAN correlation of the candidates inside it (0 when empty) -> MLP.
+Candidate selection and cell membership carry no gradient; correlation values do.
+"""
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from jaxflow import geometry
+from jaxflow.layers import GroupNorm
+
+
+def truncated_correlation(f1_BxNxC, f2_BxMxC, xyz2_BxMx3, k: int, chunk: int = 0):
+  """Top-k of corr = F1 F2^T / sqrt(C) per pc1 point (sorted, largest first).
+
+  Returns (corr_BxNxK, xyz_BxNxKx3). With `chunk` > 0 the N x M matrix is built `chunk` rows at a
+  time, so memory grows with N (not N x M).
+  """
+  c = f1_BxNxC.shape[-1]
+  k = min(k, f2_BxMxC.shape[1])
+
+  def select(f1_chunk):
+    corr = jnp.einsum("bnc,bmc->bnm", f1_chunk, f2_BxMxC) / jnp.sqrt(jnp.float32(c))
+    values, idx = jax.lax.top_k(corr, k)
+    return values, geometry.gather(xyz2_BxMx3, idx)
+
+  return geometry.map_row_chunks(select, (f1_BxNxC,), chunk)
+
+
+def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3):
+  """Mean correlation of the candidates in each of the resolution^3 cells around the estimate.
+
+  offset = candidate xyz - estimate. cell = round(offset / scale); a candidate is inside when
+  every |cell| <= resolution // 2; cells are numbered (dx * R + dy) * R + dz with d = cell + R // 2.
+  """
+  half = resolution // 2
+  cell_BxNxKx3 = jnp.round(jax.lax.stop_gradient(offset_BxNxKx3) / scale)
+  inside_BxNxK = jnp.all(jnp.abs(cell_BxNxKx3) <= half, axis=-1)
+  d = (cell_BxNxKx3 + half).astype(jnp.int32)
+  index_BxNxK = (d[..., 0] * resolution + d[..., 1]) * resolution + d[..., 2]
+  index_BxNxK = jnp.where(inside_BxNxK, index_BxNxK, -1)
+  # A compare-and-reduce per cell, which XLA fuses without materialising a one-hot B x N x K x R^3.
+  member_BxNxKxR = index_BxNxK[..., None] == jnp.arange(resolution**3)
+  sums_BxNxR = jnp.sum(jnp.where(member_BxNxKxR, corr_BxNxK[..., None], 0.0), axis=2)
+  counts_BxNxR = jnp.sum(member_BxNxKxR, axis=2).astype(corr_BxNxK.dtype)
+  return sums_BxNxR / jnp.maximum(counts_BxNxR, 1.0)
+
+
+class PointVoxelCorrelation(nn.Module):
+  """Correlation feature J (B x N x 64) of the candidates around the current estimate."""
+
+  knn: int = 32
+  levels: int = 3
+  base_scale: float = 0.25
+  features: int = 64
+
+  @nn.compact
+  def __call__(self, corr_BxNxK, xyz_BxNxKx3, coords_BxNx3):
+    offset_BxNxKx3 = xyz_BxNxKx3 - coords_BxNx3[:, :, None, :]
+    # Point branch.
+    dist_BxNxK = jnp.sum(jax.lax.stop_gradient(offset_BxNxKx3) ** 2, axis=-1)
+    knn = min(self.knn, corr_BxNxK.shape[-1])
+    near_BxNxQ = jax.lax.top_k(-dist_BxNxK, knn)[1]
+    near_corr = jnp.take_along_axis(corr_BxNxK, near_BxNxQ, axis=2)
+    near_offset = jnp.take_along_axis(offset_BxNxKx3, near_BxNxQ[..., None], axis=2)
+    x = jnp.concatenate([near_corr[..., None], near_offset], axis=-1)
+    x = nn.Dense(64, name="knn_conv")(x)
+    x = nn.PReLU(negative_slope_init=0.25, name="knn_act")(GroupNorm(name="knn_norm")(x))
+    point_BxNxF = nn.Dense(self.features, name="knn_out")(jnp.max(x, axis=2))
+    # Voxel branch.
+    cells = [
+      voxel_means(corr_BxNxK, offset_BxNxKx3, self.base_scale * 2**level)
+      for level in range(self.levels)
+    ]
+    v = nn.Dense(128, name="voxel_conv")(jnp.concatenate(cells, axis=-1))
+    v = nn.PReLU(negative_slope_init=0.25, name="voxel_act")(GroupNorm(name="voxel_norm")(v))
+    voxel_BxNxF = nn.Dense(self.features, name="voxel_out")(v)
+    return point_BxNxF + voxel_BxNxF

@@ -1,0 +1,248 @@
+"""The whole network: parameter counts, shapes, the scan, symmetries, gradients, and fidelity to
+the official PV-RAFT outputs in ../shared/reference."""
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from configs import ablation, default, pvraft
+from jaxflow import geometry, losses
+from jaxflow.import_pvraft import convert_state_dict, import_into
+from jaxflow.model import build_model
+from jaxflow.summary import parameter_counts
+
+
+def small_config(**overrides):
+  m = default.model_config()
+  m.widths = (16, 16, 32, 32)
+  m.knn, m.truncate_k, m.corr_knn = 8, 24, 8
+  for k, v in overrides.items():
+    m[k] = v
+  return m
+
+
+def random_pair(seed, n=64, m=80):
+  rng = np.random.default_rng(seed)
+  pc1 = rng.uniform(-2, 2, size=(1, n, 3)).astype(np.float32)
+  pc2 = rng.uniform(-2, 2, size=(1, m, 3)).astype(np.float32)
+  return jnp.asarray(pc1), jnp.asarray(pc2)
+
+
+def test_pvraft_parameter_count_is_official():
+  counts = parameter_counts(pvraft.get_config().model)
+  assert sum(counts.values()) == 192034
+  assert "refine" not in counts
+  assert parameter_counts(pvraft.get_config("refine").model)["refine"] == 47187
+
+
+def test_every_variant_config_builds_and_counts():
+  totals = {row: sum(parameter_counts(ablation.get_config(row).model).values())
+            for row in ablation.ROWS}
+  # Each of the two encoders gains projections of 64*128 + 128*256 weights; GRU has 2 more gates.
+  assert totals["gcl_rc"] - totals["gcl"] == 2 * (64 * 128 + 128 * 256)
+  assert totals["gcl_rc"] > totals["gcl_rc_sgfi"]
+
+
+@pytest.mark.parametrize("n,m,batch", [(48, 72, 2), (90, 33, 1)])
+@pytest.mark.parametrize("variant", ["graph", "pvraft"])
+def test_shapes(n, m, batch, variant):
+  cfg = small_config() if variant == "graph" else small_config(
+    encoder="setconv", widths=(16, 16, 32), cell="gru", refine="setconv", residual=False)
+  model = build_model(cfg)
+  rng = np.random.default_rng(0)
+  pc1 = jnp.asarray(rng.normal(size=(batch, n, 3)), jnp.float32)
+  pc2 = jnp.asarray(rng.normal(size=(batch, m, 3)), jnp.float32)
+  variables = model.init(jax.random.PRNGKey(0), pc1, pc2, num_iters=1)
+  out = model.apply(variables, pc1, pc2, num_iters=3)
+  assert out["flows"].shape == (batch, 3, n, 3)
+  assert out["refined"].shape == (batch, n, 3)
+  assert np.all(np.isfinite(out["flows"]))
+
+
+def test_jit_compiles_once_per_shape():
+  model = build_model(small_config())
+  pc1, pc2 = random_pair(0)
+  variables = model.init(jax.random.PRNGKey(0), pc1, pc2, num_iters=1)
+  traces = []
+
+  @jax.jit
+  def run(v, a, b):
+    traces.append(1)
+    return model.apply(v, a, b, num_iters=2)["flows"]
+
+  run(variables, pc1, pc2)
+  run(variables, pc1 + 1.0, pc2)
+  assert len(traces) == 1
+  run(variables, *random_pair(1, n=50))
+  assert len(traces) == 2
+
+
+@pytest.mark.parametrize("cell", ["single_gate", "gru"])
+def test_scan_equals_python_loop(cell):
+  model = build_model(small_config(cell=cell))
+  pc1, pc2 = random_pair(2)
+  variables = model.init(jax.random.PRNGKey(1), pc1, pc2, num_iters=1)
+  scanned = model.apply(variables, pc1, pc2, num_iters=4, refine=False)["flows"]
+
+  def loop(mdl, pc1, pc2):
+    nbr1 = geometry.knn(pc1, pc1, mdl.knn)
+    nbr2 = geometry.knn(pc2, pc2, mdl.knn)
+    from jaxflow.correlation import truncated_correlation
+    corr, cand = truncated_correlation(mdl.feature_encoder(pc1, nbr1),
+                                       mdl.feature_encoder(pc2, nbr2), pc2, mdl.truncate_k)
+    context = mdl.context_encoder(pc1, nbr1)
+    half = context.shape[-1] // 2
+    h, inp, coords, flows = jnp.tanh(context[..., :half]), jax.nn.relu(context[..., half:]), pc1, []
+    for _ in range(4):
+      j = mdl.correlation(corr, cand, coords)
+      h, delta = mdl.update(h, inp, j, coords - pc1, pc1, nbr1)
+      coords = coords + delta
+      flows.append(coords - pc1)
+    return jnp.stack(flows, axis=1)
+
+  looped = model.apply(variables, pc1, pc2, method=loop)
+  np.testing.assert_allclose(scanned, looped, rtol=1e-5, atol=1e-6)
+
+
+def test_permuting_pc1_permutes_flow_and_pc2_order_does_not_matter():
+  model = build_model(small_config())
+  pc1, pc2 = random_pair(3)
+  variables = model.init(jax.random.PRNGKey(2), pc1, pc2, num_iters=1)
+  run = jax.jit(lambda a, b: model.apply(variables, a, b, num_iters=3)["refined"])
+  base = run(pc1, pc2)
+  perm1 = np.random.default_rng(0).permutation(pc1.shape[1])
+  perm2 = np.random.default_rng(1).permutation(pc2.shape[1])
+  np.testing.assert_allclose(run(pc1[:, perm1], pc2), base[:, perm1], rtol=1e-4, atol=1e-5)
+  np.testing.assert_allclose(run(pc1, pc2[:, perm2]), base, rtol=1e-4, atol=1e-5)
+
+
+def finite_loss_and_grads(cfg, pc1, pc2):
+  model = build_model(cfg)
+  variables = model.init(jax.random.PRNGKey(3), pc1, pc2, num_iters=1)
+  gt = jnp.full(pc1.shape, 0.1)
+
+  def loss_fn(params):
+    out = model.apply({"params": params}, pc1, pc2, num_iters=2)
+    return losses.total_loss(out["flows"], out["refined"], gt)
+
+  loss, grads = jax.value_and_grad(loss_fn)(variables["params"])
+  return np.isfinite(loss) and all(np.all(np.isfinite(g)) for g in jax.tree_util.tree_leaves(grads))
+
+
+def test_gradients_finite_on_degenerate_input():
+  """One batch, one case per pair: duplicate points, all points identical, a cloud 1e4 m away."""
+  pc1, pc2 = random_pair(4, n=40, m=40)
+  dup1 = pc1.at[:, 20:].set(pc1[:, :20])
+  dup2 = pc2.at[:, 10:30].set(pc2[:, :20])
+  same = jnp.full_like(pc1, 0.5)
+  batch1 = jnp.concatenate([dup1, same, pc1 + 1e4])
+  batch2 = jnp.concatenate([dup2, same, pc2 + 1e4])
+  assert finite_loss_and_grads(small_config(), batch1, batch2)
+
+
+def test_gradients_finite_with_fewer_points_than_k():
+  cfg = small_config()
+  cfg.knn, cfg.truncate_k, cfg.corr_knn = 8, 64, 32  # more than the 8 points each cloud holds
+  pc1, pc2 = random_pair(6, n=8, m=8)
+  assert finite_loss_and_grads(cfg, pc1, pc2)
+
+
+def test_far_cloud_gives_the_same_flow_as_near():
+  """Translation invariance: the network sees only relative positions (up to float32 rounding)."""
+  model = build_model(small_config())
+  pc1, pc2 = random_pair(5)
+  variables = model.init(jax.random.PRNGKey(4), pc1, pc2, num_iters=1)
+  near = model.apply(variables, pc1, pc2, num_iters=2)["flows"]
+  far = model.apply(variables, pc1 + 1000.0, pc2 + 1000.0, num_iters=2)["flows"]
+  np.testing.assert_allclose(far, near, atol=5e-3)
+
+
+# --- Fidelity to the official PV-RAFT network --------------------------------------------------
+
+def reference_graph_candidates(points, k):
+  """kNN graphs as the official code computes them, with every way to break its float32 ties.
+
+  The reference orders neighbours by |p|^2 + |q|^2 - 2 p.q in float32, the dot product a fused
+  multiply-add chain over x, y, z (emulated exactly here in float64), then torch.argsort. Where
+  the k-th and (k+1)-th distances are equal in float32 the reference's choice is unspecified
+  (PyTorch's CPU sort is not stable), so each such row yields two candidate graphs.
+  """
+  p = points.astype(np.float32)
+  x, y, z = p[:, 0], p[:, 1], p[:, 2]
+  sq = ((x * x + y * y) + z * z)[:, None]
+  f64 = lambda a: a.astype(np.float64)
+  xy = (f64(y[:, None]) * y[None] + np.outer(x, x).astype(np.float32)).astype(np.float32)
+  dot = (f64(z[:, None]) * z[None] + xy).astype(np.float32)
+  d = (sq + sq.T) - np.float32(2) * dot
+  order = np.argsort(d, axis=-1, kind="stable")
+  base = order[:, :k].copy()
+  ties = [i for i in range(len(p)) if d[i, order[i, k - 1]] == d[i, order[i, k]]]
+  options = []
+  for flips in itertools.product([False, True], repeat=len(ties)):
+    g = base.copy()
+    for row, flip in zip(ties, flips):
+      if flip:
+        g[row, k - 1] = order[row, k]
+    options.append(g)
+  return options, ties
+
+
+@pytest.fixture(scope="module")
+def pvraft_reference(shared_dir_module):
+  path = shared_dir_module / "reference" / "pvraft_seed0_n1024_it8.npz"
+  if not path.is_file():
+    pytest.skip(f"{path} not present")
+  with np.load(path) as data:
+    return {k: data[k] for k in data.files}
+
+
+@pytest.fixture(scope="module")
+def shared_dir_module():
+  from conftest import SHARED
+  if not SHARED.is_dir():
+    pytest.skip(f"{SHARED} not present")
+  return SHARED
+
+
+def test_pvraft_reproduces_official_outputs(pvraft_reference):
+  ref = pvraft_reference
+  imported, has_refine = convert_state_dict({k: v for k, v in ref.items() if "/" in k})
+  assert has_refine
+  model = build_model(pvraft.get_config("refine").model)
+  pc1, pc2 = jnp.asarray(ref["pc1"]), jnp.asarray(ref["pc2"])
+  fresh = model.init(jax.random.PRNGKey(0), pc1, pc2, num_iters=1)["params"]
+  params = import_into(jax.tree_util.tree_map(np.asarray, fresh), imported)
+
+  # fmap1 depends on pc1's graph only (no float32 ties at its boundary in this file).
+  nbr1_options, ties1 = reference_graph_candidates(ref["pc1"][0], 32)
+  nbr2_options, ties2 = reference_graph_candidates(ref["pc2"][0], 32)
+  assert len(ties1) + len(ties2) <= 6, "too many float32 ties to enumerate"
+
+  run = jax.jit(lambda g1, g2: model.apply({"params": params}, pc1, pc2, num_iters=8,
+                                           graphs=(g1[None], g2[None])))
+  best = None
+  for g1, g2 in itertools.product(nbr1_options, nbr2_options):
+    out = run(jnp.asarray(g1), jnp.asarray(g2))
+    err = np.linalg.norm(np.asarray(out["flows"][0]) - ref["flows"][0], axis=-1)  # Z x N
+    if best is None or np.median(err[-1]) < np.median(best[1][-1]):
+      best = (g1, err, out)
+  g1, err, out = best
+
+  fmap1 = model.apply({"params": params}, pc1, jnp.asarray(g1)[None],
+                      method=lambda mdl, p, g: mdl.feature_encoder(p, g))
+  want = ref["fmap1"].transpose(0, 2, 1)
+  assert np.abs(np.asarray(fmap1) - want).max() <= 1e-5 * np.abs(want).max()
+  for z in range(8):  # the README's tolerances, at every iteration
+    assert np.median(err[z]) < 5e-6, (z, np.median(err[z]))
+    assert np.mean(err[z] < 1e-3) >= 0.995, (z, np.mean(err[z] < 1e-3))
+  refined_err = np.linalg.norm(np.asarray(out["refined"][0]) - ref["refined"][0], axis=-1)
+  assert np.median(refined_err) < 1e-5 and np.mean(refined_err < 1e-3) >= 0.995
+
+
+def test_import_rejects_foreign_weights():
+  from jaxflow.errors import CheckpointError
+  with pytest.raises(CheckpointError, match="matches no jaxflow parameter"):
+    convert_state_dict({"backbone.layer1.weight": np.zeros((3, 3))})

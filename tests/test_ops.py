@@ -1,0 +1,201 @@
+"""Each numerical operation of the network against the plain NumPy loops of numpy_reference."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import numpy_reference as ref
+from jaxflow import geometry, losses, metrics
+from jaxflow.correlation import PointVoxelCorrelation, truncated_correlation, voxel_means
+from jaxflow.layers import GCL, SetConv
+from jaxflow.update import GRUCell, SingleGateCell
+
+SEEDS = (0, 1, 2)
+
+
+def close(actual, expected, rtol=1e-5):
+  """Agreement to rtol relative to the reference's scale (float32 against float64 loops)."""
+  actual, expected = np.asarray(actual, np.float64), np.asarray(expected, np.float64)
+  scale = max(np.abs(expected).max(), 1e-12)
+  np.testing.assert_allclose(actual, expected, rtol=rtol, atol=rtol * scale)
+
+
+def cloud(seed, n=40, spread=1.0):
+  return np.random.default_rng(seed).normal(size=(n, 3)).astype(np.float32) * spread
+
+
+def init_apply(module, seed, *args):
+  variables = module.init(jax.random.PRNGKey(seed), *args)
+  # Non-trivial norm affine parameters, so that scale and bias are exercised.
+  variables = jax.tree_util.tree_map_with_path(
+    lambda path, x: x + 0.3 * jax.random.normal(jax.random.PRNGKey(len(path) + seed), x.shape)
+    if any(getattr(k, "key", "") in ("scale", "negative_slope") for k in path) else x,
+    variables,
+  )
+  return variables, module.apply(variables, *args)
+
+
+def numpy_params(variables):
+  return jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), variables["params"])
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_knn_matches_loop(seed):
+  pts = cloud(seed)
+  got = np.asarray(geometry.knn(jnp.asarray(pts)[None], jnp.asarray(pts)[None], 8))[0]
+  want = ref.knn(pts, 8)
+  assert all(set(g) == set(w) for g, w in zip(got, want))
+  assert np.all(got[:, 0] == np.arange(len(pts)))  # nearest is the point itself
+
+
+@pytest.mark.parametrize("chunk", [0, 7, 16])
+def test_knn_chunked_equals_whole(chunk):
+  pts = jnp.asarray(cloud(3, n=50))[None]
+  np.testing.assert_array_equal(geometry.knn(pts, pts, 6, chunk), geometry.knn(pts, pts, 6))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_setconv_matches_loop(seed):
+  xyz = cloud(seed)
+  f = np.random.default_rng(seed + 10).normal(size=(40, 8)).astype(np.float32)
+  nbr = ref.knn(xyz, 8)
+  variables, got = init_apply(SetConv(24), seed, jnp.asarray(f)[None], jnp.asarray(xyz)[None],
+                              jnp.asarray(nbr)[None])
+  close(got[0], ref.setconv(numpy_params(variables), f, xyz, nbr))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("similarity", ["sum", "product"])
+def test_gcl_matches_loop(seed, similarity):
+  xyz = cloud(seed, n=24)
+  f = np.random.default_rng(seed + 20).normal(size=(24, 5)).astype(np.float32)
+  nbr = ref.knn(xyz, 6)
+  variables, got = init_apply(GCL(8, supports=3, similarity=similarity), seed,
+                              jnp.asarray(f)[None], jnp.asarray(xyz)[None], jnp.asarray(nbr)[None])
+  close(got[0], ref.gcl(numpy_params(variables), f, xyz, nbr, 3, similarity))
+
+
+def correlation_inputs(seed, n=30, k=40):
+  rng = np.random.default_rng(seed)
+  coords = rng.normal(size=(n, 3)).astype(np.float32)
+  # Candidates around each point at distances spanning the three voxel levels and beyond.
+  cand = (coords[:, None, :] + rng.uniform(-2.2, 2.2, size=(n, k, 3))).astype(np.float32)
+  corr = rng.normal(size=(n, k)).astype(np.float32) * 3
+  return corr, cand, coords
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("scale", [0.25, 0.5, 1.0])
+def test_voxel_cells_match_loop(seed, scale):
+  corr, cand, coords = correlation_inputs(seed)
+  got = voxel_means(jnp.asarray(corr)[None], jnp.asarray(cand - coords[:, None])[None], scale)
+  want = ref.voxel_cells(corr, cand, coords, scale)
+  close(got[0], want)
+  assert np.any(want == 0) and np.any(want != 0)  # both empty and filled cells were exercised
+
+
+def test_voxel_cells_validity_cube_and_empty():
+  # One candidate per cell centre of a 5x5x5 grid at spacing 1: only the inner 3x3x3 are inside.
+  grid = np.stack(np.meshgrid(*[np.arange(-2, 3)] * 3, indexing="ij"), -1).reshape(-1, 3)
+  corr = np.arange(len(grid), dtype=np.float32)
+  got = np.asarray(voxel_means(jnp.asarray(corr)[None, None], jnp.asarray(grid, jnp.float32)[None, None], 1.0))[0, 0]
+  for dx, dy, dz in np.ndindex(3, 3, 3):
+    idx = np.where(np.all(grid == [dx - 1, dy - 1, dz - 1], axis=1))[0][0]
+    assert got[dx * 9 + dy * 3 + dz] == corr[idx]
+  # No candidate inside: every cell is 0.
+  far = jnp.full((1, 1, 4, 3), 10.0)
+  assert np.all(np.asarray(voxel_means(jnp.ones((1, 1, 4)), far, 0.25)) == 0)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_point_branch_matches_loop(seed):
+  corr, cand, coords = correlation_inputs(seed)
+  module = PointVoxelCorrelation(knn=8, levels=3)
+  args = (jnp.asarray(corr)[None], jnp.asarray(cand)[None], jnp.asarray(coords)[None])
+  variables, got = init_apply(module, seed, *args)
+  p = numpy_params(variables)
+  point = ref.point_branch(p, corr, cand, coords, 8)
+  cells = np.concatenate([ref.voxel_cells(corr, cand, coords, 0.25 * 2**l) for l in range(3)], -1)
+  v = ref.prelu(ref.group_norm(cells @ p["voxel_conv"]["kernel"] + p["voxel_conv"]["bias"],
+                               p["voxel_norm"]["scale"], p["voxel_norm"]["bias"]),
+                p["voxel_act"]["negative_slope"])
+  voxel = v @ p["voxel_out"]["kernel"] + p["voxel_out"]["bias"]
+  close(got[0], point + voxel)
+
+
+def test_truncated_correlation_is_topk_of_scaled_products():
+  rng = np.random.default_rng(0)
+  f1, f2 = rng.normal(size=(1, 20, 16)), rng.normal(size=(1, 30, 16))
+  xyz2 = rng.normal(size=(1, 30, 3))
+  corr, cand = truncated_correlation(*(jnp.asarray(a, jnp.float32) for a in (f1, f2, xyz2)), k=5)
+  full = f1[0] @ f2[0].T / 4.0
+  for i in range(20):
+    top = np.argsort(-full[i])[:5]
+    close(corr[0, i], full[i, top])
+    close(cand[0, i], xyz2[0, top])
+  chunked = truncated_correlation(*(jnp.asarray(a, jnp.float32) for a in (f1, f2, xyz2)), k=5, chunk=6)
+  np.testing.assert_allclose(chunked[0], corr, rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("cell", ["gru", "single_gate"])
+def test_recurrent_cells_match_numpy(seed, cell):
+  rng = np.random.default_rng(seed)
+  h = np.tanh(rng.normal(size=(1, 10, 16))).astype(np.float32)
+  x = rng.normal(size=(1, 10, 24)).astype(np.float32)
+  module = GRUCell() if cell == "gru" else SingleGateCell()
+  variables, got = init_apply(module, seed, jnp.asarray(h), jnp.asarray(x))
+  fn = ref.gru if cell == "gru" else ref.single_gate
+  close(got[0], fn(numpy_params(variables), h[0], x[0]))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_losses_match_numpy(seed):
+  rng = np.random.default_rng(seed)
+  flows = rng.normal(size=(2, 5, 30, 3)).astype(np.float32)
+  gt = rng.normal(size=(2, 30, 3)).astype(np.float32)
+  mask = rng.random((2, 30)) > 0.3
+  per_iter = [np.abs(flows[:, z] - gt)[mask].mean() for z in range(5)]
+  want = sum(0.8 ** (4 - z) * per_iter[z] for z in range(5))
+  close(losses.sequence_loss(jnp.asarray(flows), jnp.asarray(gt), jnp.asarray(mask)), want)
+  close(losses.refinement_loss(jnp.asarray(flows[:, -1]), jnp.asarray(gt), jnp.asarray(mask)),
+        per_iter[-1])
+  close(losses.total_loss(jnp.asarray(flows), jnp.asarray(flows[:, -1]), jnp.asarray(gt),
+                          jnp.asarray(mask)), 0.8 * want + per_iter[-1])
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_metrics_match_loop(seed):
+  rng = np.random.default_rng(seed)
+  gt = rng.normal(size=(3, 200, 3)).astype(np.float32)
+  # Errors spanning every threshold: tiny, relative, absolute and large.
+  pred = gt + rng.normal(size=gt.shape).astype(np.float32) * rng.choice([0.01, 0.05, 0.2, 1.0], (3, 200, 1))
+  got = metrics.per_pair_metrics(jnp.asarray(pred), jnp.asarray(gt))
+  for b in range(3):
+    want = ref.metrics(pred[b], gt[b])
+    for key in metrics.METRICS:
+      close(got[key][b], want[key])
+  mean = metrics.scene_flow_metrics(jnp.asarray(pred), jnp.asarray(gt))
+  for key in metrics.METRICS:
+    close(mean[key], np.mean([ref.metrics(pred[b], gt[b])[key] for b in range(3)]))
+
+
+def test_metrics_mask_selects_points_and_empty_pair_is_nan():
+  rng = np.random.default_rng(5)
+  gt = rng.normal(size=(2, 50, 3)).astype(np.float32)
+  pred = gt + rng.normal(size=gt.shape).astype(np.float32) * 0.1
+  mask = np.zeros((2, 50), bool)
+  mask[0, :20] = True
+  got = metrics.per_pair_metrics(jnp.asarray(pred), jnp.asarray(gt), jnp.asarray(mask))
+  want = ref.metrics(pred[0, :20], gt[0, :20])
+  for key in metrics.METRICS:
+    close(got[key][0], want[key])
+    assert np.isnan(got[key][1])
+
+
+def test_metrics_perfect_prediction():
+  gt = jnp.asarray(np.random.default_rng(1).normal(size=(1, 40, 3)), jnp.float32)
+  m = metrics.scene_flow_metrics(gt, gt)
+  assert float(m["epe"]) == 0 and float(m["acc_strict"]) == 100 and float(m["outliers"]) == 0
+  assert float(m["angle"]) < 1e-3
