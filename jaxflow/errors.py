@@ -17,6 +17,9 @@ class DataError(JaxflowError):
     self.problem = problem
     super().__init__(f"{self.path}: {problem}")
 
+  def __reduce__(self):  # survives pickling between loader processes with path and problem
+    return (type(self), (self.path, self.problem))
+
 
 class CheckpointError(JaxflowError):
   """A checkpoint is missing, incomplete or does not match the model."""
