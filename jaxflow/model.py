@@ -41,6 +41,7 @@ class SceneFlowNet(nn.Module):
   corr_levels: int = 3
   base_scale: float = 0.25
   refine: str = "graph"
+  refine_widths: Sequence[int] = ()
   corr_chunk: int = 0
 
   def setup(self):
@@ -63,7 +64,8 @@ class SceneFlowNet(nn.Module):
     self.update = UpdateBlock(cell=self.cell)
     if self.refine == "graph":
       self.refine_module = GraphRefinement(
-        supports=self.gcl_supports, similarity=self.gcl_similarity, name="refine"
+        tuple(self.refine_widths) or (256, 128, 64), self.gcl_supports, self.gcl_similarity,
+        name="refine",
       )
     elif self.refine == "setconv":
       self.refine_module = SetConvRefinement(name="refine")
@@ -123,6 +125,7 @@ def build_model(model_config: ml_collections.ConfigDict) -> SceneFlowNet:
   """The network described by a config's `model` section."""
   fields = dict(model_config)
   fields["widths"] = tuple(fields.get("widths") or ())
+  fields["refine_widths"] = tuple(fields.get("refine_widths") or ())
   known = set(SceneFlowNet.__dataclass_fields__) - {"parent", "name"}
   unknown = sorted(set(fields) - known)
   if unknown:
