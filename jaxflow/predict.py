@@ -1,0 +1,316 @@
+r"""Scene flow of your own point files with a trained checkpoint.
+
+    python -m jaxflow.predict PC1 PC2 --out FLOW.npy [--checkpoint PATH] [--config CONFIG]
+        [--iters 32] [--max-points 8192 | --full [--corr-chunk 2048]] [--seed 0] [--render OUT.png]
+
+    flow_Nx3 = predict_flow(pc1_Nx3, pc2_Mx3)            # from Python (a notebook)
+
+PC1 and PC2 are any file `jaxflow.data.read_points` reads (.npy, .ply, .pcd, KITTI .bin, .xyz/.txt),
+in metres, in one frame: x right, y up, z forward works best (the conventions of the FT3D and KITTI
+readers the models are trained in). The output is float32 N x 3, one row per point of PC1, in file
+order: row i is the flow of the i-th point of PC1 that read_points keeps. read_points drops rows with
+a non-finite coordinate; when it does, the count is printed on stderr and those rows have no output
+row (the output aligns with the finite rows of PC1, in their order).
+
+Cloud size. A cloud with at most `max_points` points (default 8192, the paper's test size; with
+--config, its config.eval.num_points, 0 meaning whole clouds; --max-points overrides both) is used
+whole, without resampling. A larger one is sampled to `max_points` points without replacement,
+seeded (`--seed`, default 0: the same call gives the same flow); pc1 and pc2 are sampled independently.
+The flow is then mapped back to EVERY point of PC1: an unsampled pc1 point takes the flow of its
+nearest sampled pc1 point (Euclidean; a sampled point keeps its own). With --full the model runs on
+the whole clouds instead, with the correlation and kNN built `corr_chunk` pc1 rows at a time, so
+memory stays linear in the number of points (time grows as N x M).
+
+Model. The checkpoint (default: the shipped `checkpoints/jaxflow_synthetic/` of this repository, found
+from the package, not the working directory) carries its config: the model is built from it. As in
+evaluate.py, --config only sets evaluation settings (config.eval.num_points, config.eval.num_iters);
+a model field of the given config that contradicts the checkpoint is an error, except corr_chunk. A
+stage-2 checkpoint gives the refined flow, a stage-1 one the last iteration's.
+
+Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
+than the model's neighbourhood config.model.knn) prints one line naming the file and the problem and
+exits with code 2.
+"""
+
+import dataclasses
+import functools
+import os
+import pathlib
+import sys
+import warnings
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from jaxflow import checkpointing, evaluation, geometry
+from jaxflow.data import read_points
+from jaxflow.data.sampling import sample_indices
+from jaxflow.errors import CheckpointError, ConfigError, DataError
+from jaxflow.model import build_model
+
+DEFAULT_MAX_POINTS = 8192  # the paper's evaluation size
+DEFAULT_ITERS = 32  # the paper's test-time iterations
+DEFAULT_CORR_CHUNK = 2048  # --full: pc1 rows of the correlation / kNN built at a time
+SHIPPED_CHECKPOINT = evaluation.SHIPPED_CHECKPOINT
+
+
+@dataclasses.dataclass
+class Predictor:
+  """A model with its parameters: `predictor(pc1_Nx3, pc2_Mx3) -> flow N x 3` (numpy)."""
+
+  model: object
+  params: object
+  config: ml_collections.ConfigDict  # the checkpoint's config (the model it was built from)
+  refine: bool  # the refined flow (stage 2) or the last iteration's
+  name: str = ""  # checkpoint path and step, for messages
+  _fns: dict = dataclasses.field(default_factory=dict, repr=False)
+
+  @property
+  def min_points(self) -> int:
+    """Fewer points than the model's neighbourhood (config.model.knn) are refused."""
+    return int(self.config.model.knn)
+
+  def _fn(self, num_iters: int, corr_chunk: int):
+    key = (num_iters, corr_chunk)
+    if key not in self._fns:
+      model = self.model if corr_chunk == self.model.corr_chunk else self.model.clone(
+        corr_chunk=corr_chunk)
+      self._fns[key] = evaluation.model_predict_fn(model, num_iters, self.refine)
+    return self._fns[key]
+
+  def __call__(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
+               max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
+               corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2")):
+    """Flow N x 3 of every point of pc1 (see the module docstring for sampling and --full)."""
+    pc1_Nx3 = _cloud(pc1_Nx3, names[0], self.min_points)
+    pc2_Mx3 = _cloud(pc2_Mx3, names[1], self.min_points)
+    if num_iters < 1:
+      raise ConfigError(f"num_iters must be >= 1, got {num_iters}")
+    if full or not max_points:
+      if corr_chunk < 0:
+        raise ConfigError(f"corr_chunk must be >= 0, got {corr_chunk}")
+      fn = self._fn(num_iters, corr_chunk)
+      return np.asarray(fn(self.params, pc1_Nx3[None], pc2_Mx3[None])[0])
+    if max_points < self.min_points:
+      raise ConfigError(f"max_points={max_points} is below the model's neighbourhood "
+                        f"(config.model.knn={self.min_points})")
+    rng = np.random.default_rng(seed)
+    idx1 = sample_indices(len(pc1_Nx3), max_points, rng)[0] if len(pc1_Nx3) > max_points else None
+    idx2 = sample_indices(len(pc2_Mx3), max_points, rng)[0] if len(pc2_Mx3) > max_points else None
+    sub1 = pc1_Nx3 if idx1 is None else pc1_Nx3[idx1]
+    sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
+    fn = self._fn(num_iters, self.model.corr_chunk)
+    flow_Sx3 = fn(self.params, sub1[None], sub2[None])[0]
+    if idx1 is None:
+      return np.asarray(flow_Sx3)
+    flow_Nx3 = spread_flow(pc1_Nx3, sub1, flow_Sx3)
+    flow_Nx3[idx1] = np.asarray(flow_Sx3)  # a sampled point keeps its own flow, even at ties
+    return flow_Nx3
+
+
+def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndarray:
+  """Flow N x 3 for every point: the flow of its nearest sampled point (chunked: memory ~ chunk x S)."""
+  return np.array(_spread(jnp.asarray(points_Nx3), jnp.asarray(sampled_Sx3),
+                           jnp.asarray(flow_Sx3), chunk))
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _spread(points_Nx3, sampled_Sx3, flow_Sx3, chunk):
+  nearest_N = geometry.knn(points_Nx3[None], sampled_Sx3[None], 1, chunk)[0, :, 0]
+  return flow_Sx3[nearest_N]
+
+
+def _cloud(points, name, min_points: int) -> np.ndarray:
+  """An N x 3 float32 array, finite, with at least `min_points` points; else DataError(name)."""
+  a = np.asarray(points)
+  if a.dtype.kind not in "iuf":
+    raise DataError(name, f"points have dtype {a.dtype}, expected numbers")
+  if a.ndim != 2 or a.shape[1] != 3:
+    raise DataError(name, f"points have shape {a.shape}, expected N x 3")
+  a = a.astype(np.float32)
+  if not np.isfinite(a).all():
+    raise DataError(name, "non-finite coordinates (read_points drops such rows)")
+  if len(a) < min_points:
+    raise DataError(name, f"only {len(a)} points; the model needs at least {min_points} "
+                    "(its neighbourhood size, config.model.knn)")
+  return a
+
+
+def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = None,
+                   model_fields=()) -> Predictor:
+  """The model of a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
+
+  `model_fields` names fields of `config.model` the user asked for; as in evaluate.py one that
+  contradicts the checkpoint is a CheckpointError, except the runtime fields (corr_chunk), which are
+  taken from `config`.
+  """
+  from jaxflow import training  # pylint: disable=import-outside-toplevel
+
+  if checkpoint is None:
+    if not SHIPPED_CHECKPOINT.exists():
+      raise CheckpointError(f"no checkpoint given and no shipped checkpoint at {SHIPPED_CHECKPOINT}")
+    checkpoint = SHIPPED_CHECKPOINT
+  runtime = [k for k in model_fields if k in evaluation.RUNTIME_MODEL_FIELDS]
+  if config is not None:
+    checked = [k for k in model_fields if k not in evaluation.RUNTIME_MODEL_FIELDS]
+    _, _, saved = checkpointing.open_checkpoint(checkpoint)
+    diffs = checkpointing.model_differences(config, saved, fields=checked)
+    if diffs:
+      raise CheckpointError(
+        f"{checkpoint}: the config's model contradicts the checkpoint's ({'; '.join(diffs)}, "
+        "config != checkpoint); the model comes from the checkpoint: drop those model fields")
+  state, saved, step = training.restore_checkpoint(checkpoint)
+  with saved.unlocked():
+    for k in runtime:
+      saved.model[k] = config.model[k]
+  refine = saved.train.stage == 2 and saved.model.refine != "none"
+  return Predictor(build_model(saved.model), state.params, saved, refine,
+                   name=f"{checkpoint} (step {step})")
+
+
+def fresh_predictor(config: ml_collections.ConfigDict, seed: int = 0) -> Predictor:
+  """An untrained model of `config.model` (random parameters): for trying the API without weights."""
+  from jaxflow import training  # pylint: disable=import-outside-toplevel
+
+  model = build_model(config.model)
+  params = training.init_params(model, config, jax.random.key(seed))
+  return Predictor(model, params, config, refine=False, name="fresh (untrained)")
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_predictor(checkpoint: str | None) -> Predictor:
+  return load_predictor(checkpoint)
+
+
+def predict_flow(pc1_Nx3, pc2_Mx3, checkpoint=None, num_iters: int = DEFAULT_ITERS,
+                 max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
+                 corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
+                 predictor: Predictor | None = None) -> np.ndarray:
+  """Flow N x 3 (float32) of every point of pc1 towards pc2; the checkpoint is loaded once and kept.
+
+  checkpoint None is the shipped one; `predictor` (from load_predictor / fresh_predictor) replaces it.
+  """
+  if predictor is None:
+    predictor = _cached_predictor(None if checkpoint is None else str(checkpoint))
+  return predictor(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points, full=full,
+                   corr_chunk=corr_chunk, seed=seed)
+
+
+def write_ply(path, points_Nx3) -> pathlib.Path:
+  """Writes points as a binary little-endian PLY (float x, y, z): readable by read_points, MeshLab,
+  CloudCompare; e.g. write_ply("moved.ply", pc1 + flow)."""
+  points_Nx3 = np.ascontiguousarray(points_Nx3, dtype="<f4")
+  if points_Nx3.ndim != 2 or points_Nx3.shape[1] != 3:
+    raise ValueError(f"write_ply: expected N x 3 points, got shape {points_Nx3.shape}")
+  header = ("ply\nformat binary_little_endian 1.0\ncomment written by jaxflow\n"
+            f"element vertex {len(points_Nx3)}\nproperty float x\nproperty float y\n"
+            "property float z\nend_header\n")
+  path = pathlib.Path(path)
+  path.write_bytes(header.encode("ascii") + points_Nx3.tobytes())
+  return path
+
+
+def read_cloud(path) -> tuple[np.ndarray, str | None]:
+  """read_points(path) and a note when non-finite rows were dropped (None otherwise)."""
+  with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    points = read_points(path)
+  notes = [str(w.message) for w in caught if "non-finite" in str(w.message)]
+  for w in caught:
+    if "non-finite" not in str(w.message):
+      warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+  return points, (notes[0] if notes else None)
+
+
+# The command line.
+
+
+def _define_flags():
+  from absl import flags  # pylint: disable=import-outside-toplevel
+  from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
+
+  config_flags.DEFINE_config_file(
+    "config", None, "Evaluation settings (config.eval.num_points, config.eval.num_iters); the model "
+    "comes from the checkpoint.", lock_config=True)
+  flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "
+                      "shipped checkpoints/jaxflow_synthetic/).")
+  flags.DEFINE_string("out", None, "Write the flow here (.npy, float32, one row per point of PC1).")
+  flags.DEFINE_integer("iters", None, f"Flow iterations (default {DEFAULT_ITERS}, or "
+                       "config.eval.num_iters with --config).")
+  flags.DEFINE_integer("max-points", None, f"Clouds above this size are sampled to it and the flow is "
+                       f"mapped back to every PC1 point by nearest sampled neighbour (default "
+                       f"{DEFAULT_MAX_POINTS}, or config.eval.num_points with --config; 0: whole clouds).")
+  flags.DEFINE_bool("full", False, "Run on the whole clouds, the correlation and kNN built in chunks "
+                    "of --corr-chunk rows (memory linear in the points).")
+  flags.DEFINE_integer("corr-chunk", DEFAULT_CORR_CHUNK, "Rows per chunk with --full.")
+  flags.DEFINE_integer("seed", 0, "Seed of the sampling of larger clouds.")
+  flags.DEFINE_string("render", None, "Also save the Fig. 2 view (pc1 blue, pc2 red, pc1 + flow "
+                      "green) as this PNG.")
+  flags.mark_flags_as_required(["out"])
+  return flags.FLAGS
+
+
+def main(argv):
+  from absl import flags  # pylint: disable=import-outside-toplevel
+  from absl import logging as absl_logging  # pylint: disable=import-outside-toplevel
+
+  from jaxflow import cli  # pylint: disable=import-outside-toplevel
+
+  FLAGS = flags.FLAGS
+  if not FLAGS["verbosity"].present:  # orbax warns that a read-only checkpoint is read-only
+    absl_logging.set_verbosity(absl_logging.ERROR)
+  if len(argv) != 3:
+    cli.fail(f"expected two point files PC1 PC2, got {len(argv) - 1} argument(s): "
+             f"{' '.join(argv[1:]) or '(none)'}")
+  pc1_path, pc2_path = argv[1:]
+  config = FLAGS.config
+  max_points, num_iters, model_fields = DEFAULT_MAX_POINTS, DEFAULT_ITERS, []
+  if config is not None:
+    max_points, num_iters = config.eval.num_points, config.eval.num_iters
+    if FLAGS["config"].present:  # an explicit config file: its whole model must match
+      model_fields = list(config.model.keys())
+  if FLAGS["max-points"].value is not None:
+    max_points = FLAGS["max-points"].value
+  if FLAGS.iters is not None:
+    num_iters = FLAGS.iters
+  if max_points is not None and max_points < 0:
+    raise ConfigError(f"--max-points must be >= 0, got {max_points}")
+  out = pathlib.Path(FLAGS.out)
+  if out.is_dir():
+    raise ConfigError(f"--out {out}: is a folder, expected a file name such as flow.npy")
+
+  pc1, note1 = read_cloud(pc1_path)
+  pc2, note2 = read_cloud(pc2_path)
+  predictor = load_predictor(FLAGS.checkpoint, config, model_fields)
+  flow_Nx3 = predictor(pc1, pc2, num_iters=num_iters, max_points=max_points, full=FLAGS.full,
+                       corr_chunk=FLAGS["corr-chunk"].value, seed=FLAGS.seed,
+                       names=(pc1_path, pc2_path)).astype(np.float32)
+  try:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as f:
+      np.save(f, flow_Nx3)
+  except OSError as e:
+    raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
+  if note1:
+    print(f"note: {note1}; {out} has one row per remaining PC1 row, in file order", file=sys.stderr)
+  if note2:
+    print(f"note: {note2}", file=sys.stderr)
+  how = ("whole clouds" if FLAGS.full or not max_points or max(len(pc1), len(pc2)) <= max_points
+         else f"sampled to {max_points} points, flow mapped back to every PC1 point")
+  print(f"{out}: flow of {len(pc1)} points ({how}; {num_iters} iterations; {predictor.name})",
+        file=sys.stderr)
+  if FLAGS.render:
+    from jaxflow import viz  # pylint: disable=import-outside-toplevel
+    viz.render_pair(pc1, pc2, flow_Nx3, FLAGS.render,
+                    title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
+    print(f"{FLAGS.render}: Fig. 2 view", file=sys.stderr)
+
+
+if __name__ == "__main__":
+  # Config files import `configs` from the repository root, wherever the command runs.
+  sys.path.insert(0, os.fspath(pathlib.Path(__file__).absolute().parent.parent))
+  _define_flags()
+  from jaxflow import cli  # pylint: disable=import-outside-toplevel
+  cli.run(main)

@@ -1,0 +1,193 @@
+"""jaxflow.predict: the command line on user files (broken ones -> exit 2, one line) and the API."""
+
+import os
+import pathlib
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from configs import default
+from jaxflow import checkpointing, predict, training
+from jaxflow.data import open_dataset, read_points
+from jaxflow.data.sampling import sample_pair
+from jaxflow.model import build_model
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+N1, N2 = 150, 140  # points of the test pair (the smoke model's knn is 8)
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+  """A stage-2 checkpoint of the smoke-sized model (random weights: the tests check plumbing)."""
+  config = default.get_config("smoke")
+  config.train.stage = 2
+  model = build_model(config.model)
+  tx = training.make_optimizer(config, 1)
+  state = training.create_train_state(training.init_params(model, config, jax.random.key(0)), tx)
+  path = tmp_path_factory.mktemp("ckpt")
+  ckpts = checkpointing.Checkpoints(path / "checkpoints")
+  ckpts.save(1, state, config)
+  ckpts.close()
+  return path
+
+
+@pytest.fixture(scope="module")
+def pair():
+  p = open_dataset("synthetic_things:1", split="test")[0]
+  p, _ = sample_pair(p, max(N1, N2), np.random.default_rng(0))
+  return p.pc1[:N1], p.pc2[:N2], p.flow[:N1]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, pair):
+  """Point files, good and broken."""
+  d = tmp_path_factory.mktemp("points")
+  pc1, pc2, _ = pair
+  np.save(d / "pc1.npy", pc1)
+  np.save(d / "pc2.npy", pc2)
+  predict.write_ply(d / "pc1.ply", pc1)
+  predict.write_ply(d / "pc2.ply", pc2)
+  with_nan = pc1.copy()
+  with_nan[[3, 10]] = np.nan
+  np.save(d / "nan.npy", with_nan)
+  big = np.concatenate([pc1, pc1[:, :] + np.float32(0.01)])  # 2 N1 points, above --max-points
+  np.save(d / "big.npy", big)
+  (d / "corrupt.npy").write_bytes(b"\x93NUMPY garbage")
+  np.save(d / "two_columns.npy", pc1[:, :2])
+  np.save(d / "all_nan.npy", np.full((20, 3), np.nan, np.float32))
+  np.save(d / "few.npy", pc1[:5])  # fewer than the model's knn (8)
+  (d / "notes.txt").write_text("1 2\n3 4\n")
+  return d
+
+
+def _cli(*args):
+  return [sys.executable, "-m", "jaxflow.predict", *map(str, args)]
+
+
+@pytest.fixture(scope="module")
+def predictor(workdir):
+  return predict.load_predictor(workdir)
+
+
+@pytest.fixture(scope="module")
+def runs(files, workdir):
+  """Every command-line case, started at once (each pays jax's import) and collected."""
+  ck = ["--checkpoint", workdir]
+  d = files
+  cases = {
+    "missing": _cli(d / "nope.npy", d / "pc2.npy", "--out", d / "o1.npy", *ck),
+    "corrupt": _cli(d / "corrupt.npy", d / "pc2.npy", "--out", d / "o2.npy", *ck),
+    "two_columns": _cli(d / "pc1.npy", d / "two_columns.npy", "--out", d / "o3.npy", *ck),
+    "text_two_columns": _cli(d / "notes.txt", d / "pc2.npy", "--out", d / "o4.npy", *ck),
+    "all_nan": _cli(d / "all_nan.npy", d / "pc2.npy", "--out", d / "o5.npy", *ck),
+    "few": _cli(d / "pc1.npy", d / "few.npy", "--out", d / "o6.npy", *ck),
+    "bad_checkpoint": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o7.npy", "--checkpoint",
+                           d / "nothing_here"),
+    "config_contradicts": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o8.npy", *ck,
+                               "--config", os.path.join(ROOT, "configs", "default.py")),
+    "npy": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_npy.npy", *ck, "--iters", 4,
+                "--render", d / "view.png"),
+    "ply": _cli(d / "pc1.ply", d / "pc2.ply", "--out", d / "flow_ply.npy", *ck, "--iters", 4),
+    "nan": _cli(d / "nan.npy", d / "pc2.npy", "--out", d / "flow_nan.npy", *ck, "--iters", 4,
+                "--max-points", 100),
+    "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *ck,
+                         "--config", os.path.join(ROOT, "configs", "default.py") + ":smoke"),
+  }
+  env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
+         "JAX_PLATFORMS": "cpu"}
+  procs = {k: subprocess.Popen(v, cwd=d, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True) for k, v in cases.items()}
+  out = {}
+  for k, p in procs.items():
+    stdout, stderr = p.communicate(timeout=240)
+    out[k] = (p.returncode, stdout, stderr)
+  return out
+
+
+@pytest.mark.parametrize("case, words", [
+  ("missing", ["nope.npy", "missing file"]),
+  ("corrupt", ["corrupt.npy", "corrupt"]),
+  ("two_columns", ["two_columns.npy", "shape (150, 2)"]),
+  ("text_two_columns", ["notes.txt", "expected at least 3"]),
+  ("all_nan", ["all_nan.npy", "only 0 point"]),
+  ("few", ["few.npy", "only 5 points", "config.model.knn"]),
+  ("bad_checkpoint", ["nothing_here"]),
+  ("config_contradicts", ["contradicts the checkpoint"]),
+])
+def test_broken_input_is_one_line_and_exit_2(runs, case, words):
+  rc, stdout, stderr = runs[case]
+  assert rc == 2, stderr
+  lines = stderr.strip().splitlines()
+  assert len(lines) == 1 and lines[0].startswith("error: "), stderr
+  assert "Traceback" not in stderr and stdout == ""
+  for w in words:
+    assert w in lines[0]
+
+
+def test_round_trip_npy_and_ply(runs, files, predictor, pair):
+  for case in ("npy", "ply"):
+    assert runs[case][0] == 0, runs[case][2]
+  flow_npy = np.load(files / "flow_npy.npy")
+  flow_ply = np.load(files / "flow_ply.npy")
+  assert flow_npy.shape == (N1, 3) and flow_npy.dtype == np.float32
+  assert np.isfinite(flow_npy).all()
+  np.testing.assert_array_equal(read_points(files / "pc1.ply"), pair[0])  # the writer round-trips
+  np.testing.assert_allclose(flow_ply, flow_npy, atol=1e-5)
+  api = predict.predict_flow(pair[0], pair[1], num_iters=4, predictor=predictor)  # same as the CLI
+  np.testing.assert_allclose(api, flow_npy, atol=1e-4)
+  png = (files / "view.png").read_bytes()
+  assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 1000
+
+
+def test_larger_cloud_gives_one_row_per_input_point(runs, files):
+  rc, _, stderr = runs["config_smoke"]  # config.eval.num_points = 64 < 300 points: sampled
+  assert rc == 0, stderr
+  assert "sampled to 64" in stderr and np.load(files / "flow_cfg.npy").shape == (2 * N1, 3)
+  rc, _, stderr = runs["nan"]  # --max-points 100 < 148 points
+  assert rc == 0, stderr
+  assert "sampled to 100" in stderr
+
+
+def test_dropped_rows_are_reported_and_output_aligns(runs, files):
+  rc, _, stderr = runs["nan"]
+  assert rc == 0, stderr
+  assert "dropped 2 of 150" in stderr and "one row per remaining PC1 row" in stderr
+  assert np.load(files / "flow_nan.npy").shape == (N1 - 2, 3)
+
+
+def test_sampling_maps_flow_to_nearest_sampled_point(predictor, files, pair):
+  big, pc2 = np.load(files / "big.npy"), pair[1]
+  flow = predictor(big, pc2, num_iters=4, max_points=N1, seed=3)  # the model sees N1 points
+  np.testing.assert_array_equal(flow, predictor(big, pc2, num_iters=4, max_points=N1, seed=3))
+  idx = np.random.default_rng(3).choice(len(big), N1, replace=False)  # the documented sampling
+  d = np.linalg.norm(big[:, None] - big[idx][None], axis=-1)
+  np.testing.assert_allclose(flow, flow[idx][np.argmin(d, axis=1)], atol=1e-6)
+  assert flow.shape == (2 * N1, 3) and len(np.unique(flow, axis=0)) <= N1
+
+
+def test_full_clouds_with_chunks_match_unchunked(predictor, pair):
+  pc1, pc2, _ = pair
+  whole = predictor(pc1, pc2, num_iters=4, full=True, corr_chunk=0)
+  chunked = predictor(pc1, pc2, num_iters=4, full=True, corr_chunk=32)
+  np.testing.assert_allclose(chunked, whole, atol=1e-4)
+  # Clouds within max_points are used whole, without resampling.
+  np.testing.assert_array_equal(predictor(pc1, pc2, num_iters=4, max_points=N1), whole)
+
+
+def test_api_rejects_small_or_malformed_clouds(predictor, pair):
+  with pytest.raises(predict.DataError, match="pc2: only 4 points"):
+    predictor(pair[0], pair[1][:4])
+  with pytest.raises(predict.DataError, match="expected N x 3"):
+    predictor(pair[0][:, :2], pair[1])
+
+
+def test_default_checkpoint_is_the_shipped_one(pair):
+  assert predict.SHIPPED_CHECKPOINT == predict.evaluation.SHIPPED_CHECKPOINT
+  assert predict.SHIPPED_CHECKPOINT.parent.parent == pathlib.Path(ROOT)
+  if not predict.SHIPPED_CHECKPOINT.exists():
+    pytest.skip("no shipped checkpoint in this tree")
+  flow = predict.predict_flow(pair[0][:64], pair[1][:64], num_iters=2)
+  assert flow.shape == (64, 3) and np.isfinite(flow).all()

@@ -1,0 +1,99 @@
+"""jaxflow.viz: PNGs are written, and the Fig. 2 view draws what it says."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxflow import evaluation, viz
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _pair(n=300, m=280, seed=0):
+  rng = np.random.default_rng(seed)
+  pc1 = rng.uniform([-5, -1.5, 3], [5, 2, 30], (n, 3)).astype(np.float32)
+  pc2 = rng.uniform([-5, -1.5, 3], [5, 2, 30], (m, 3)).astype(np.float32)
+  flow = rng.normal(0, 0.3, (n, 3)).astype(np.float32)
+  return pc1, pc2, flow
+
+
+def _is_png(path):
+  data = path.read_bytes()
+  return data.startswith(PNG) and len(data) > 1000
+
+
+def _artists(fig, label):
+  return [c for ax in fig.axes for c in ax.collections if c.get_label() == label]
+
+
+def _drawn(artist):
+  """The x, y, z data of a 3D scatter, in the readers' frame (viz draws (x, z, y))."""
+  xs, zs, ys = (np.asarray(a) for a in artist._offsets3d)  # pylint: disable=protected-access
+  return np.stack([xs, ys, zs], -1)
+
+
+def test_green_points_are_pc1_plus_flow():
+  pc1, pc2, flow = _pair()
+  gt = flow + np.float32(0.5)
+  fig = viz.pair_figure(pc1, pc2, flow, gt=gt, title="t")
+  green = _artists(fig, "pc1 + flow")
+  assert len(green) == 2  # ground-truth panel first, then the prediction (the paper's layout)
+  np.testing.assert_allclose(_drawn(green[0]), pc1 + gt, atol=1e-5)
+  np.testing.assert_allclose(_drawn(green[1]), pc1 + flow, atol=1e-5)
+  np.testing.assert_allclose(_drawn(_artists(fig, "pc1")[0]), pc1, atol=1e-6)
+  np.testing.assert_allclose(_drawn(_artists(fig, "pc2")[0]), pc2, atol=1e-6)
+  colours = {c.get_label(): tuple(np.round(c.get_facecolor()[0][:3], 2)) for c in fig.axes[0].collections}
+  assert colours["pc1"][2] > 0.6 and colours["pc2"][0] > 0.6 and colours["pc1 + flow"][1] > 0.5
+  assert [t.get_text() for t in fig.legends[0].get_texts()] == ["pc1", "pc2", "pc1 + flow"]
+  viz.plt.close(fig)
+
+
+def test_large_clouds_are_subsampled_consistently(monkeypatch):
+  monkeypatch.setattr(viz, "MAX_DRAWN", 100)
+  pc1, pc2, flow = _pair(n=500, m=400)
+  fig = viz.pair_figure(pc1, pc2, flow)
+  blue, green = _drawn(_artists(fig, "pc1")[0]), _drawn(_artists(fig, "pc1 + flow")[0])
+  assert len(blue) == len(green) == 100
+  rows = [int(np.flatnonzero((pc1 == p).all(1))[0]) for p in blue]  # the same pc1 points, moved
+  np.testing.assert_allclose(green, pc1[rows] + flow[rows], atol=1e-5)
+  assert "drawn" in fig._suptitle.get_text()  # pylint: disable=protected-access
+  viz.plt.close(fig)
+
+
+def test_render_pair_and_error_write_pngs(tmp_path):
+  pc1, pc2, flow = _pair()
+  assert _is_png(viz.render_pair(pc1, pc2, flow, tmp_path / "a" / "pair.png", title="x"))
+  assert _is_png(viz.render_pair(pc1, pc2, flow, tmp_path / "pair_gt.png", gt=flow * 0))
+  fig = viz.error_figure(pc1, flow, flow * 0, mask_N=np.arange(len(pc1)) % 2 == 0)
+  label = fig.axes[-1].get_ylabel()
+  assert "clipped at 0.3" in label
+  art = fig.axes[0].collections[0]
+  assert art.get_array().max() <= viz.ERROR_CLIP + 1e-6 and len(art.get_array()) == len(pc1) // 2
+  viz.plt.close(fig)
+  assert _is_png(viz.render_error(pc1, flow, flow * 0, tmp_path / "err.png"))
+
+
+def test_evaluate_render_calls_match(tmp_path):
+  """evaluate.py --render goes through evaluation._render -> viz.render_pair."""
+  pc1, pc2, flow = _pair()
+  batch = {"pc1": pc1[None], "pc2": pc2[None], "flow": flow[None], "names": ["ft3d/val/0000007"],
+           "pair_valid": np.ones(1, np.float32)}
+  evaluation._render(tmp_path, batch, flow[None] * 0.9)  # pylint: disable=protected-access
+  assert _is_png(tmp_path / "ft3d_val_0000007.png")
+
+
+@pytest.mark.parametrize("with_stage", [True, False])
+def test_learning_curves(tmp_path, with_stage):
+  lines = []
+  for step in range(10, 210, 10):
+    r = {"step": step, "loss": 3.0 / step**0.5, "grad_norm": 1.0}
+    if with_stage:
+      r["stage"] = 1 if step <= 100 else 2
+    lines.append(json.dumps(r))
+  (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+  out = viz.plot_learning_curves(tmp_path / "metrics.jsonl", tmp_path / "plots" / "curve.png")
+  assert out is not None and _is_png(out)
+  assert not (tmp_path / "learning_curve.png").exists()  # nothing written beside the log
+  (tmp_path / "empty.jsonl").write_text("")
+  assert viz.plot_learning_curves(tmp_path / "empty.jsonl", tmp_path / "none.png") is None
