@@ -1,0 +1,175 @@
+"""Checkpoints: an orbax `CheckpointManager` holding the train state and the config that made it.
+
+Layout of a workdir:
+
+    WORKDIR/config.json                  the run's config (also stored in every checkpoint)
+    WORKDIR/checkpoints/<step>/state     the train state (`StandardSave`)
+    WORKDIR/checkpoints/<step>/config    the config as JSON (`JsonSave`)
+
+orbax writes a step into `<step>.orbax-checkpoint-tmp-*` and renames it when complete, so a
+half-written step is never listed. A numbered step folder that lacks orbax's metadata or one of the
+two items (copied by hand, truncated) is refused with a `CheckpointError` naming it.
+"""
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import ml_collections
+import orbax.checkpoint as ocp
+
+from jaxflow.errors import CheckpointError
+
+ITEMS = ("state", "config")
+_STEP_METADATA = "_CHECKPOINT_METADATA"  # written by orbax into every finalised step folder
+
+
+def config_to_dict(config: ml_collections.ConfigDict) -> dict:
+  """The config as plain JSON types (tuples become lists)."""
+  return json.loads(config.to_json_best_effort())
+
+
+def config_from_dict(d: dict) -> ml_collections.ConfigDict:
+  return ml_collections.ConfigDict(d)
+
+
+def model_differences(a: ml_collections.ConfigDict, b: ml_collections.ConfigDict,
+                      fields=None) -> list[str]:
+  """`field: a != b` for each model field (or each of `fields`) where the two configs differ."""
+  da, db = config_to_dict(a.model), config_to_dict(b.model)
+  names = sorted(set(da) | set(db)) if fields is None else fields
+  return [f"{k}: {da.get(k)!r} != {db.get(k)!r}" for k in names if da.get(k) != db.get(k)]
+
+
+def incomplete_reason(step_dir: Path) -> str | None:
+  """Why a step folder is not a complete checkpoint, or None when it is."""
+  if not step_dir.is_dir():
+    return "no such folder"
+  if not (step_dir / _STEP_METADATA).exists():
+    return f"missing {_STEP_METADATA} (half-written or copied incompletely)"
+  for item in ITEMS:
+    if not (step_dir / item).is_dir():
+      return f"missing the '{item}' item"
+  return None
+
+
+class Checkpoints:
+  """The checkpoints of one run: `WORKDIR/checkpoints`, keeping the last `max_to_keep` steps."""
+
+  def __init__(self, directory, max_to_keep: int | None = 3, create: bool = True):
+    self.directory = Path(directory).absolute()
+    if not create and not self.directory.is_dir():
+      raise CheckpointError(f"{self.directory}: no such checkpoint folder")
+    options = ocp.CheckpointManagerOptions(
+      max_to_keep=max_to_keep,
+      create=create,
+      # Synchronous: when save() returns the step is committed (what the signal handler relies on).
+      enable_async_checkpointing=False,
+    )
+    self.manager = ocp.CheckpointManager(self.directory, item_names=ITEMS, options=options)
+
+  def steps(self) -> list[int]:
+    return sorted(self.manager.all_steps())
+
+  def latest_step(self) -> int | None:
+    """The newest step; a CheckpointError when that step folder is incomplete."""
+    steps = self.steps()
+    if not steps:
+      return None
+    self._check(steps[-1])
+    return steps[-1]
+
+  def step_dir(self, step: int) -> Path:
+    return self.directory / str(step)
+
+  def _check(self, step: int):
+    reason = incomplete_reason(self.step_dir(step))
+    if reason:
+      raise CheckpointError(
+        f"{self.step_dir(step)}: incomplete checkpoint ({reason}); delete it to use an earlier step"
+      )
+
+  def save(self, step: int, state: Any, config: ml_collections.ConfigDict):
+    if step in self.manager.all_steps():
+      return  # already saved (e.g. a periodic save at the step the signal arrived)
+    self.manager.save(
+      step,
+      args=ocp.args.Composite(
+        state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config_to_dict(config))
+      ),
+      force=True,
+    )
+    self.manager.wait_until_finished()
+
+  def restore_config(self, step: int) -> ml_collections.ConfigDict:
+    self._check(step)
+    try:
+      out = self.manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+    except Exception as e:  # orbax/tensorstore raise many types; the user needs the path.
+      raise CheckpointError(f"{self.step_dir(step)}: unreadable config ({_short(e)})") from e
+    return config_from_dict(out["config"])
+
+  def restore_state(self, step: int, abstract_state: Any) -> Any:
+    """The state at `step`, shaped (and sharded) like `abstract_state` (from `jax.eval_shape`)."""
+    self._check(step)
+    try:
+      out = self.manager.restore(
+        step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state))
+      )
+    except Exception as e:
+      raise CheckpointError(
+        f"{self.step_dir(step)}: cannot restore the train state ({_short(e)})"
+      ) from e
+    return out["state"]
+
+  def close(self):
+    self.manager.close()
+
+
+def _short(e: Exception, limit: int = 300) -> str:
+  text = " ".join(str(e).split()) or type(e).__name__
+  return text if len(text) <= limit else text[:limit] + " ..."
+
+
+def locate(path) -> tuple[Path, int]:
+  """(checkpoints folder, step) for a workdir, a checkpoints folder or one step folder.
+
+  A workdir or checkpoints folder gives its newest complete step.
+  """
+  path = Path(path).absolute()
+  if not path.exists():
+    raise CheckpointError(f"{path}: no such checkpoint, workdir or step folder")
+  if path.name.isdigit() and any((path / item).exists() for item in ITEMS):
+    reason = incomplete_reason(path)
+    if reason:
+      raise CheckpointError(f"{path}: incomplete checkpoint ({reason})")
+    return path.parent, int(path.name)
+  directory = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+  steps = sorted(
+    int(p.name) for p in directory.iterdir() if p.name.isdigit() and p.is_dir()
+  ) if directory.is_dir() else []
+  if not steps:
+    raise CheckpointError(f"{path}: no checkpoint found (expected <step>/ folders in {directory})")
+  reason = incomplete_reason(directory / str(steps[-1]))
+  if reason:
+    raise CheckpointError(
+      f"{directory / str(steps[-1])}: incomplete checkpoint ({reason}); delete it or name an "
+      "earlier step folder"
+    )
+  return directory, steps[-1]
+
+
+def open_checkpoint(path) -> tuple[Checkpoints, int, ml_collections.ConfigDict]:
+  """(read-only Checkpoints, step, config) of a workdir, checkpoints folder or step folder."""
+  directory, step = locate(path)
+  ckpts = Checkpoints(directory, max_to_keep=None, create=False)
+  return ckpts, step, ckpts.restore_config(step)
+
+
+def write_config(config: ml_collections.ConfigDict, workdir) -> Path:
+  path = Path(workdir) / "config.json"
+  tmp = path.with_suffix(".json.tmp")
+  tmp.write_text(json.dumps(config_to_dict(config), indent=2) + "\n")
+  os.replace(tmp, path)
+  return path

@@ -1,0 +1,167 @@
+"""Evaluation: the five metrics averaged over pairs, timed, printed as the paper's Tables 2-3.
+
+    results = evaluate(model, params, dataset, num_points=8192, batch_size=1, num_iters=32)
+    print(format_table([("KITTI", results)]))
+
+Metrics are computed per pair on its valid points, then averaged over pairs; padding pairs
+(`pair_valid` = 0) are excluded. `ms_per_pair` is the model's wall time (compilation excluded: the
+function is compiled ahead of the timed calls) divided by the number of real pairs. Evaluation point
+sampling is seeded, so the same call gives the same numbers.
+"""
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from jaxflow import checkpointing
+from jaxflow.data import eval_batches, open_dataset
+from jaxflow.errors import CheckpointError, ConfigError
+from jaxflow.metrics import per_pair_metrics
+from jaxflow.model import build_model
+
+METRICS = ("epe", "acc_strict", "acc_relax", "outliers", "angle")
+# The shipped checkpoint, used by evaluate.py when --checkpoint is not given.
+SHIPPED_CHECKPOINT = Path(__file__).absolute().parent.parent / "checkpoints" / "jaxflow_synthetic"
+# Model fields that change how the model runs, not its parameters or outputs: evaluation settings.
+RUNTIME_MODEL_FIELDS = ("corr_chunk",)
+
+
+def model_predict_fn(model, num_iters: int, refine: bool):
+  """jit (params, pc1, pc2) -> flow B x N x 3: the refined flow, or the last iteration's."""
+
+  def predict(params, pc1_BxNx3, pc2_BxMx3):
+    out = model.apply({"params": params}, pc1_BxNx3, pc2_BxMx3, num_iters=num_iters, refine=refine)
+    return out["refined"] if refine else out["flows"][:, -1]
+
+  return jax.jit(predict)
+
+
+def _run(predict, args, dataset, num_points: int | None, batch_size: int, seed: int,
+         render_dir=None) -> dict:
+  """Averages the metrics of `predict(*args, pc1, pc2)` over the dataset's pairs."""
+  metrics_fn = jax.jit(per_pair_metrics)
+  compiled = {}  # by input shapes; compiled before timing
+  sums = dict.fromkeys(METRICS, 0.0)
+  pairs, seconds = 0, 0.0
+  for batch in eval_batches(dataset, batch_size, num_points, seed=seed):
+    pc1, pc2 = jnp.asarray(batch["pc1"]), jnp.asarray(batch["pc2"])
+    key = (pc1.shape, pc2.shape)
+    if key not in compiled:
+      compiled[key] = predict.lower(*args, pc1, pc2).compile()
+    start = time.perf_counter()
+    pred = compiled[key](*args, pc1, pc2).block_until_ready()
+    seconds += time.perf_counter() - start
+    per_pair = jax.device_get(metrics_fn(pred, jnp.asarray(batch["flow"]),
+                                         jnp.asarray(batch["mask"])))
+    valid = np.asarray(batch["pair_valid"], np.float64)
+    for k in METRICS:
+      sums[k] += float(np.sum(np.asarray(per_pair[k], np.float64) * valid))
+    pairs += int(valid.sum())
+    if render_dir is not None:
+      _render(render_dir, batch, np.asarray(pred))
+  if pairs == 0:
+    raise ConfigError("the evaluation dataset holds no pairs")
+  results = {k: sums[k] / pairs for k in METRICS}
+  results.update(pairs=pairs, ms_per_pair=1000.0 * seconds / pairs)
+  return results
+
+
+def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int, num_iters: int = 32,
+             refine: bool = False, seed: int = 0, render_dir=None) -> dict:
+  """Metrics of the model's flow on every pair of `dataset`, with pairs and ms_per_pair."""
+  predict = model_predict_fn(model, num_iters, refine)
+  results = _run(predict, (params,), dataset, num_points, batch_size, seed, render_dir)
+  results["output"] = "refined" if refine else "coarse"
+  return results
+
+
+def evaluate_zero_flow(dataset, *, num_points: int | None, batch_size: int, seed: int = 0) -> dict:
+  """The same metrics for a zero-flow prediction on the same pairs (the trivial baseline)."""
+  predict = jax.jit(lambda pc1, pc2: jnp.zeros_like(pc1))
+  return _run(predict, (), dataset, num_points, batch_size, seed)
+
+
+def _render(render_dir, batch, pred_BxNx3):
+  try:
+    from jaxflow import viz
+  except ImportError as e:
+    raise ConfigError(f"--render needs the jaxflow.viz module, which cannot be imported ({e})")
+  Path(render_dir).mkdir(parents=True, exist_ok=True)
+  for i, name in enumerate(batch["names"]):
+    if not batch["pair_valid"][i]:
+      continue
+    stem = str(name).strip("/").replace("/", "_").replace(":", "_")
+    viz.render_pair(batch["pc1"][i], batch["pc2"][i], pred_BxNx3[i],
+                    Path(render_dir) / f"{stem}.png", gt=batch["flow"][i])
+
+
+def format_table(rows) -> str:
+  """rows: (dataset name, results) -> the layout of the paper's Tables 2-3."""
+  header = ("Dataset", "EPE(m)", "AccS(%)", "AccR(%)", "Outliers(%)", "θε(rad)", "pairs", "ms/pair")
+  lines = [header]
+  for name, r in rows:
+    lines.append((
+      name, f"{r['epe']:.4f}", f"{r['acc_strict']:.2f}", f"{r['acc_relax']:.2f}",
+      f"{r['outliers']:.2f}", f"{r['angle']:.4f}", str(r["pairs"]), f"{r['ms_per_pair']:.1f}",
+    ))
+  widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
+  fmt = lambda line: "| " + " | ".join(
+    c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(line, widths))
+  ) + " |"
+  rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
+  return "\n".join([fmt(lines[0]), rule] + [fmt(line) for line in lines[1:]])
+
+
+def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: str | None = None,
+                        split: str | None = None, model_fields=(), json_path=None,
+                        render_dir=None) -> dict:
+  """Evaluates a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
+
+  The model comes from the checkpoint's stored config; `config.eval` sets points (0: whole clouds),
+  iterations, batch, seed and, unless given, the dataset and split. `model_fields` names the fields
+  of `config.model` the user asked for: one that contradicts the checkpoint is a CheckpointError,
+  except RUNTIME_MODEL_FIELDS, which change no parameter and are taken from `config`.
+  """
+  from jaxflow import training  # training imports this module
+
+  dataset = dataset or config.eval.dataset
+  split = split or config.eval.split
+  if not dataset:
+    raise ConfigError("no dataset to evaluate: give --dataset FORMAT:ROOT")
+  if checkpoint is None:
+    if not SHIPPED_CHECKPOINT.exists():
+      raise CheckpointError(
+        f"no --checkpoint given and no shipped checkpoint at {SHIPPED_CHECKPOINT}"
+      )
+    checkpoint = SHIPPED_CHECKPOINT
+  _, _, saved = checkpointing.open_checkpoint(checkpoint)
+  runtime = [k for k in model_fields if k in RUNTIME_MODEL_FIELDS]
+  checked = [k for k in model_fields if k not in RUNTIME_MODEL_FIELDS]
+  diffs = checkpointing.model_differences(config, saved, fields=checked)
+  if diffs:
+    raise CheckpointError(
+      f"{checkpoint}: the config's model contradicts the checkpoint's ({'; '.join(diffs)}, "
+      "config != checkpoint); the model comes from the checkpoint: drop those model fields"
+    )
+  state, saved, step = training.restore_checkpoint(checkpoint)
+  with saved.unlocked():
+    for k in runtime:
+      saved.model[k] = config.model[k]
+  model = build_model(saved.model)
+  refine = saved.train.stage == 2 and saved.model.refine != "none"
+  ds = open_dataset(dataset, split=split)
+  results = evaluate(model, state.params, ds, num_points=config.eval.num_points or None,
+                     batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
+                     refine=refine, seed=config.eval.seed, render_dir=render_dir)
+  results.update(dataset=dataset, split=split, checkpoint=str(checkpoint), step=step,
+                 num_points=config.eval.num_points, num_iters=config.eval.num_iters)
+  print(format_table([(f"{dataset} ({split})", results)]))
+  if json_path:
+    Path(json_path).absolute().parent.mkdir(parents=True, exist_ok=True)
+    Path(json_path).write_text(json.dumps(results, indent=2) + "\n")
+  return results

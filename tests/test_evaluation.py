@@ -1,0 +1,152 @@
+"""evaluate.py and jaxflow.evaluation: determinism, padding, the table, bad checkpoints."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from configs import default
+from jaxflow import evaluation, training
+from jaxflow.data import eval_batches, open_dataset
+from jaxflow.errors import CheckpointError
+
+REPO = Path(__file__).absolute().parent.parent
+CACHE = os.environ.setdefault(
+  "JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "jaxflow-test-xla-cache")
+)
+jax.config.update("jax_compilation_cache_dir", CACHE)
+STEP = 24  # the last step of configs/default.py:smoke
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+  workdir = tmp_path_factory.mktemp("run")
+  config = default.get_config("smoke")
+  config.eval.dataset = ""
+  training.train_and_evaluate(config, workdir)
+  return workdir
+
+
+def evaluate_cli(*args):
+  env = dict(os.environ, JAX_PLATFORMS="cpu",
+             PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+  return subprocess.run([sys.executable, "evaluate.py", *map(str, args)], cwd=REPO, env=env,
+                        capture_output=True, text=True, timeout=240)
+
+
+def test_same_command_twice_gives_identical_numbers(workdir, tmp_path):
+  results = []
+  for i in range(2):
+    out = tmp_path / f"{i}.json"
+    proc = evaluate_cli("--config", "configs/default.py:smoke", "--checkpoint", workdir,
+                        "--dataset", "synthetic_lidar:5", "--json", out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "| Dataset" in proc.stdout and "EPE(m)" in proc.stdout and "ms/pair" in proc.stdout
+    results.append(json.loads(out.read_text()))
+  a, b = results
+  assert set(a) >= {"epe", "acc_strict", "acc_relax", "outliers", "angle", "pairs", "ms_per_pair"}
+  assert a["pairs"] == 5 and a["output"] == "coarse" and a["step"] == STEP
+  a.pop("ms_per_pair"), b.pop("ms_per_pair")
+  assert a == b
+
+
+def test_padding_pairs_are_excluded():
+  ds = open_dataset("synthetic_lidar:5", split="test")
+  one = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=1)
+  three = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=3)  # 1 padding pair
+  assert one["pairs"] == three["pairs"] == 5
+  for k in evaluation.METRICS:
+    np.testing.assert_allclose(one[k], three[k], rtol=1e-5)
+
+
+def test_model_results_match_a_direct_computation(workdir):
+  """evaluate() averages per-pair metrics over pairs (here against numpy on the same pairs)."""
+  state, config, _ = training.restore_checkpoint(workdir)
+  model = training.build_model(config.model)
+  ds = open_dataset("synthetic_lidar:3", split="test")
+  got = evaluation.evaluate(model, state.params, ds, num_points=64, batch_size=2, num_iters=2)
+  apply = jax.jit(lambda p, a, b: model.apply({"params": p}, a, b, num_iters=2, refine=False))
+  epes = []
+  for batch in eval_batches(ds, 1, 64, seed=0):  # the same seeded point samples, one at a time
+    flow = np.asarray(apply(state.params, batch["pc1"], batch["pc2"])["flows"][0, -1])
+    err = np.linalg.norm(flow - batch["flow"][0], axis=-1)
+    epes.append(np.sum(err * batch["mask"][0]) / np.sum(batch["mask"][0]))
+  np.testing.assert_allclose(got["epe"], np.mean(epes), rtol=1e-4)
+  assert got["pairs"] == 3 and got["ms_per_pair"] > 0
+
+
+def test_format_table_has_the_papers_columns():
+  r = dict(epe=0.04421, acc_strict=83.8, acc_relax=95.98, outliers=26.37, angle=0.1234, pairs=3824,
+           ms_per_pair=12.34)
+  lines = evaluation.format_table([("FT3D", r)]).splitlines()
+  assert [c.strip() for c in lines[0].strip("|").split("|")] == [
+    "Dataset", "EPE(m)", "AccS(%)", "AccR(%)", "Outliers(%)", "θε(rad)", "pairs", "ms/pair"]
+  assert [c.strip() for c in lines[2].strip("|").split("|")] == [
+    "FT3D", "0.0442", "83.80", "95.98", "26.37", "0.1234", "3824", "12.3"]
+
+
+def copy_run(workdir, tmp_path):
+  dst = tmp_path / "run"
+  shutil.copytree(workdir, dst)
+  return dst, dst / "checkpoints" / str(STEP)
+
+
+def test_bad_checkpoints_raise_checkpoint_error_naming_path(workdir, tmp_path):
+  config = default.get_config("smoke")
+  ev = lambda path, fields=(): evaluation.evaluate_checkpoint(
+    path, config, "synthetic_lidar:2", "test", model_fields=fields)
+  with pytest.raises(CheckpointError, match="no such"):
+    ev(tmp_path / "missing")
+  # A model field contradicting the checkpoint.
+  with config.unlocked():
+    config.model.knn = 4
+  with pytest.raises(CheckpointError, match=r"contradicts.*knn: 4 != 8"):
+    ev(workdir, ["knn"])
+  config = default.get_config("smoke")
+  # Truncated array data.
+  run, step_dir = copy_run(workdir, tmp_path / "a")
+  for f in (step_dir / "state").rglob("*"):
+    if f.is_file() and f.parent.name == "d":
+      f.write_bytes(f.read_bytes()[:7])
+  with pytest.raises(CheckpointError, match=rf"{step_dir}.*cannot restore"):
+    ev(run)
+  # A missing item.
+  run, step_dir = copy_run(workdir, tmp_path / "b")
+  shutil.rmtree(step_dir / "state")
+  with pytest.raises(CheckpointError, match=rf"{step_dir}.*missing the 'state' item"):
+    ev(step_dir)
+  # A stored config that does not match the stored arrays.
+  run, step_dir = copy_run(workdir, tmp_path / "c")
+  meta = step_dir / "config" / "metadata"
+  stored = json.loads(meta.read_text())
+  stored["model"]["widths"] = [16, 16, 32, 64]
+  meta.write_text(json.dumps(stored))
+  with pytest.raises(CheckpointError, match=rf"{step_dir}.*cannot restore"):
+    ev(run)
+
+
+def test_no_checkpoint_and_none_shipped_is_a_clear_error(monkeypatch, tmp_path):
+  monkeypatch.setattr(evaluation, "SHIPPED_CHECKPOINT", tmp_path / "jaxflow_synthetic")
+  with pytest.raises(CheckpointError, match="no --checkpoint given and no shipped checkpoint"):
+    evaluation.evaluate_checkpoint(None, default.get_config("eval"), "synthetic_lidar:2")
+
+
+def test_cli_bad_checkpoint_is_one_line_and_exit_2(workdir, tmp_path):
+  run, step_dir = copy_run(workdir, tmp_path)
+  (step_dir / "_CHECKPOINT_METADATA").unlink()
+  proc = evaluate_cli("--checkpoint", run, "--dataset", "synthetic_lidar:2")
+  assert proc.returncode == 2
+  lines = proc.stderr.strip().splitlines()
+  assert len(lines) == 1 and lines[0].startswith("error: ") and str(step_dir) in lines[0], proc.stderr
+  proc = evaluate_cli("--checkpoint", workdir, "--dataset", "synthetic_lidar:2",
+                      "--config.model.knn=4")
+  assert proc.returncode == 2
+  lines = proc.stderr.strip().splitlines()
+  assert len(lines) == 1 and "knn: 4 != 8" in lines[0], proc.stderr
