@@ -16,6 +16,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import ml_collections
 import orbax.checkpoint as ocp
 
@@ -173,3 +175,27 @@ def write_config(config: ml_collections.ConfigDict, workdir) -> Path:
   tmp.write_text(json.dumps(config_to_dict(config), indent=2) + "\n")
   os.replace(tmp, path)
   return path
+
+
+def save_params(workdir, params, config: ml_collections.ConfigDict, note: str = "") -> Path:
+  """Writes parameters made elsewhere (e.g. imported weights) as step 0 of a new workdir, which
+  evaluate.py, jaxflow.predict and train.py (resume, or stage 2's init_from) load like a trained
+  run; the optimiser state is freshly initialised. `note` is written to WORKDIR/NOTE.txt."""
+  from jaxflow import training  # training imports this module
+  from jaxflow.model import build_model
+
+  workdir = Path(workdir).absolute()
+  tx = training.make_optimizer(config, 1)
+  expected = training.abstract_train_state(build_model(config.model), tx, config).params
+  shape = lambda t: jax.tree.map(lambda x: (tuple(x.shape), str(x.dtype)), t)
+  if shape(params) != shape(expected):
+    raise CheckpointError(f"{workdir}: the parameters do not match config.model")
+  ckpts = Checkpoints(workdir / "checkpoints", max_to_keep=None)
+  if ckpts.steps():
+    raise CheckpointError(f"{workdir}: already holds checkpoints; write to a new folder")
+  ckpts.save(0, training.create_train_state(jax.tree.map(jnp.asarray, params), tx), config)
+  ckpts.close()
+  write_config(config, workdir)
+  if note:
+    (workdir / "NOTE.txt").write_text(note + "\n")
+  return workdir

@@ -139,7 +139,7 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
         f"no --checkpoint given and no shipped checkpoint at {SHIPPED_CHECKPOINT}"
       )
     checkpoint = SHIPPED_CHECKPOINT
-  _, _, saved = checkpointing.open_checkpoint(checkpoint)
+  state, saved, step = training.restore_checkpoint(checkpoint)
   runtime = [k for k in model_fields if k in RUNTIME_MODEL_FIELDS]
   checked = [k for k in model_fields if k not in RUNTIME_MODEL_FIELDS]
   diffs = checkpointing.model_differences(config, saved, fields=checked)
@@ -148,7 +148,6 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
       f"{checkpoint}: the config's model contradicts the checkpoint's ({'; '.join(diffs)}, "
       "config != checkpoint); the model comes from the checkpoint: drop those model fields"
     )
-  state, saved, step = training.restore_checkpoint(checkpoint)
   with saved.unlocked():
     for k in runtime:
       saved.model[k] = config.model[k]

@@ -6,7 +6,8 @@ WEIGHTS is a PyTorch state_dict of the official RSF (stage 1) or RSF_refine (sta
 (read with torch, an optional dependency), or an .npz of the same arrays: plain PyTorch names, or
 names prefixed `rsf/` and `refine/` as in the project's reference file. PyTorch 1x1 convolutions
 (`out x in x 1 [x 1]`) become dense kernels (`in x out`). The refinement is imported when its
-weights are present; otherwise it keeps a fresh initialisation and the checkpoint says so.
+weights are present (config `configs/pvraft.py:refine`), else the stage-1 network alone
+(`configs/pvraft.py`); WORKDIR/NOTE.txt records which.
 """
 
 import argparse
@@ -156,20 +157,22 @@ def main(argv=None):
   from jaxflow import checkpointing
   from jaxflow.model import build_model
 
-  config = pvraft.get_config()
   imported, has_refine = convert_state_dict(load_weights(args.weights))
+  # The official RSF_refine (with refinement) or RSF (stage 1 alone).
+  config = pvraft.get_config("refine" if has_refine else "")
   model = build_model(config.model)
   dummy = jnp.zeros((1, 64, 3), jnp.float32) + jnp.linspace(0, 1, 64)[None, :, None]
   fresh = model.init(jax.random.PRNGKey(0), dummy, dummy, num_iters=1)["params"]
   fresh = jax.tree_util.tree_map(np.asarray, fresh)
   params = import_into(fresh, imported)
   checkpointing.save_params(args.out, params, config, note=(
-    f"imported from {args.weights}; refinement "
-    + ("imported" if has_refine else "NOT present: freshly initialised, train stage 2")
+    f"imported from {args.weights} with" + ("" if has_refine else "out") + " PV-RAFT's refinement"
   ))
   print(f"wrote {args.out} (refinement {'imported' if has_refine else 'not in the weights'})")
 
 
 if __name__ == "__main__":
-  from jaxflow.cli import run
-  run(main)
+  import sys
+
+  from jaxflow.cli import guard
+  sys.exit(guard(main))

@@ -246,3 +246,23 @@ def test_import_rejects_foreign_weights():
   from jaxflow.errors import CheckpointError
   with pytest.raises(CheckpointError, match="matches no jaxflow parameter"):
     convert_state_dict({"backbone.layer1.weight": np.zeros((3, 3))})
+
+
+def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_reference, tmp_path):
+  import subprocess
+  import sys
+
+  from conftest import ROOT
+  from jaxflow import training
+  source = tmp_path / "weights.npz"
+  np.savez(source, **{k: v for k, v in pvraft_reference.items() if "/" in k})
+  out = tmp_path / "imported"
+  done = subprocess.run([sys.executable, "-m", "jaxflow.import_pvraft", str(source), "--out", str(out)],
+                        cwd=ROOT, capture_output=True, text=True)
+  assert done.returncode == 0, done.stderr
+  state, config, step = training.restore_checkpoint(out)
+  assert config.model.refine == "setconv" and step == 0
+  kernel = pvraft_reference["rsf/update_block.gru.convz.weight"][:, :, 0].T
+  np.testing.assert_array_equal(state.params["update"]["gru"]["convz"]["kernel"], kernel)
+  fc = pvraft_reference["refine/fc.weight"].T
+  np.testing.assert_array_equal(state.params["refine"]["fc"]["kernel"], fc)

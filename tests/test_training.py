@@ -15,9 +15,9 @@ import pytest
 from flax import traverse_util
 
 from configs import default, stage2_synthetic
-from jaxflow import training
+from jaxflow import checkpointing, training
 from jaxflow.data import BatchLoader, open_dataset
-from jaxflow.errors import DataError, NonFiniteError
+from jaxflow.errors import CheckpointError, DataError, NonFiniteError
 from jaxflow.model import build_model
 
 REPO = Path(__file__).absolute().parent.parent
@@ -114,6 +114,23 @@ def test_stage2_freezes_backbone_bitwise_and_trains_refinement(stage1, tmp_path)
   n_refine = sum(before[k].size for k in refine)
   n_opt = sum(x.size for x in jax.tree.leaves(state.opt_state) if x.ndim > 0)
   assert n_opt == 2 * n_refine  # Adam's mu and nu
+
+
+def test_save_params_writes_a_workdir_that_loads(tmp_path):
+  config = smoke()
+  params = training.init_params(build_model(config.model), config, jax.random.key(3))
+  path = checkpointing.save_params(tmp_path / "imported", jax.device_get(params), config,
+                                   note="imported from nowhere")
+  state, saved, step = training.restore_checkpoint(path)
+  assert step == 0 and not checkpointing.model_differences(saved, config)
+  a, b = flat(state.params), flat(params)
+  assert all(np.array_equal(a[k], b[k]) for k in a)
+  assert (path / "NOTE.txt").read_text() == "imported from nowhere\n"
+  with pytest.raises(CheckpointError, match="already holds checkpoints"):
+    checkpointing.save_params(path, params, config)
+  del params["refine"]
+  with pytest.raises(CheckpointError, match="do not match config.model"):
+    checkpointing.save_params(tmp_path / "other", params, config)
 
 
 class NaNAt(BatchLoader):
