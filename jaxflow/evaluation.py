@@ -21,10 +21,9 @@ import numpy as np
 from jaxflow import checkpointing
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
-from jaxflow.metrics import per_pair_metrics
+from jaxflow.metrics import METRICS, per_pair_metrics
 from jaxflow.model import build_model
 
-METRICS = ("epe", "acc_strict", "acc_relax", "outliers", "angle")
 # The shipped checkpoint, used by evaluate.py when --checkpoint is not given.
 SHIPPED_CHECKPOINT = Path(__file__).absolute().parent.parent / "checkpoints" / "jaxflow_synthetic"
 # Model fields that change how the model runs, not its parameters or outputs: evaluation settings.
