@@ -116,44 +116,53 @@ def format_table(rows) -> str:
   return "\n".join([fmt(lines[0]), rule] + [fmt(line) for line in lines[1:]])
 
 
+def load_model(checkpoint=None, config: ml_collections.ConfigDict | None = None, model_fields=()):
+  """(model, params, stored config, step, refine) of a checkpoint (None: the shipped one).
+
+  The model comes from the checkpoint's stored config. `model_fields` names the fields of
+  `config.model` the user asked for: one that contradicts the checkpoint is a CheckpointError,
+  except RUNTIME_MODEL_FIELDS, which change no parameter and are taken from `config`.
+  `refine` says whether the checkpoint's refinement was trained (stage 2).
+  """
+  from jaxflow import training  # training imports this module
+
+  if checkpoint is None:
+    if not SHIPPED_CHECKPOINT.exists():
+      raise CheckpointError(f"no checkpoint given and no shipped checkpoint at {SHIPPED_CHECKPOINT}")
+    checkpoint = SHIPPED_CHECKPOINT
+  state, saved, step = training.restore_checkpoint(checkpoint)
+  if config is not None:
+    runtime = [k for k in model_fields if k in RUNTIME_MODEL_FIELDS]
+    checked = [k for k in model_fields if k not in RUNTIME_MODEL_FIELDS]
+    diffs = checkpointing.model_differences(config, saved, fields=checked)
+    if diffs:
+      raise CheckpointError(
+        f"{checkpoint}: the config's model contradicts the checkpoint's ({'; '.join(diffs)}, "
+        "config != checkpoint); the model comes from the checkpoint: drop those model fields"
+      )
+    with saved.unlocked():
+      for k in runtime:
+        saved.model[k] = config.model[k]
+  refine = saved.train.stage == 2 and saved.model.refine != "none"
+  return build_model(saved.model), state.params, saved, step, refine
+
+
 def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: str | None = None,
                         split: str | None = None, model_fields=(), json_path=None,
                         render_dir=None) -> dict:
   """Evaluates a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
-  The model comes from the checkpoint's stored config; `config.eval` sets points (0: whole clouds),
-  iterations, batch, seed and, unless given, the dataset and split. `model_fields` names the fields
-  of `config.model` the user asked for: one that contradicts the checkpoint is a CheckpointError,
-  except RUNTIME_MODEL_FIELDS, which change no parameter and are taken from `config`.
+  The model comes from the checkpoint as `load_model` gives it; `config.eval` sets points (0: whole
+  clouds), iterations, batch, seed and, unless given, the dataset and split.
   """
-  from jaxflow import training  # training imports this module
-
   dataset = dataset or config.eval.dataset
   split = split or config.eval.split
   if not dataset:
     raise ConfigError("no dataset to evaluate: give --dataset FORMAT:ROOT")
-  if checkpoint is None:
-    if not SHIPPED_CHECKPOINT.exists():
-      raise CheckpointError(
-        f"no --checkpoint given and no shipped checkpoint at {SHIPPED_CHECKPOINT}"
-      )
-    checkpoint = SHIPPED_CHECKPOINT
-  state, saved, step = training.restore_checkpoint(checkpoint)
-  runtime = [k for k in model_fields if k in RUNTIME_MODEL_FIELDS]
-  checked = [k for k in model_fields if k not in RUNTIME_MODEL_FIELDS]
-  diffs = checkpointing.model_differences(config, saved, fields=checked)
-  if diffs:
-    raise CheckpointError(
-      f"{checkpoint}: the config's model contradicts the checkpoint's ({'; '.join(diffs)}, "
-      "config != checkpoint); the model comes from the checkpoint: drop those model fields"
-    )
-  with saved.unlocked():
-    for k in runtime:
-      saved.model[k] = config.model[k]
-  model = build_model(saved.model)
-  refine = saved.train.stage == 2 and saved.model.refine != "none"
+  model, params, saved, step, refine = load_model(checkpoint, config, model_fields)
+  checkpoint = checkpoint or SHIPPED_CHECKPOINT
   ds = open_dataset(dataset, split=split)
-  results = evaluate(model, state.params, ds, num_points=config.eval.num_points or None,
+  results = evaluate(model, params, ds, num_points=config.eval.num_points or None,
                      batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
                      refine=refine, seed=config.eval.seed, render_dir=render_dir)
   results.update(dataset=dataset, split=split, checkpoint=str(checkpoint), step=step,

@@ -44,10 +44,10 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import checkpointing, evaluation, geometry
+from jaxflow import evaluation, geometry
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
-from jaxflow.errors import CheckpointError, ConfigError, DataError
+from jaxflow.errors import ConfigError, DataError
 from jaxflow.model import build_model
 
 DEFAULT_MAX_POINTS = 8192  # the paper's evaluation size
@@ -146,28 +146,9 @@ def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = N
   contradicts the checkpoint is a CheckpointError, except the runtime fields (corr_chunk), which are
   taken from `config`.
   """
-  from jaxflow import training  # pylint: disable=import-outside-toplevel
-
-  if checkpoint is None:
-    if not SHIPPED_CHECKPOINT.exists():
-      raise CheckpointError(f"no checkpoint given and no shipped checkpoint at {SHIPPED_CHECKPOINT}")
-    checkpoint = SHIPPED_CHECKPOINT
-  runtime = [k for k in model_fields if k in evaluation.RUNTIME_MODEL_FIELDS]
-  if config is not None:
-    checked = [k for k in model_fields if k not in evaluation.RUNTIME_MODEL_FIELDS]
-    _, _, saved = checkpointing.open_checkpoint(checkpoint)
-    diffs = checkpointing.model_differences(config, saved, fields=checked)
-    if diffs:
-      raise CheckpointError(
-        f"{checkpoint}: the config's model contradicts the checkpoint's ({'; '.join(diffs)}, "
-        "config != checkpoint); the model comes from the checkpoint: drop those model fields")
-  state, saved, step = training.restore_checkpoint(checkpoint)
-  with saved.unlocked():
-    for k in runtime:
-      saved.model[k] = config.model[k]
-  refine = saved.train.stage == 2 and saved.model.refine != "none"
-  return Predictor(build_model(saved.model), state.params, saved, refine,
-                   name=f"{checkpoint} (step {step})")
+  model, params, saved, step, refine = evaluation.load_model(checkpoint, config, model_fields)
+  return Predictor(model, params, saved, refine,
+                   name=f"{checkpoint or SHIPPED_CHECKPOINT} (step {step})")
 
 
 def fresh_predictor(config: ml_collections.ConfigDict, seed: int = 0) -> Predictor:

@@ -134,7 +134,7 @@ def test_bad_checkpoints_raise_checkpoint_error_naming_path(workdir, tmp_path):
 
 def test_no_checkpoint_and_none_shipped_is_a_clear_error(monkeypatch, tmp_path):
   monkeypatch.setattr(evaluation, "SHIPPED_CHECKPOINT", tmp_path / "jaxflow_synthetic")
-  with pytest.raises(CheckpointError, match="no --checkpoint given and no shipped checkpoint"):
+  with pytest.raises(CheckpointError, match="no checkpoint given and no shipped checkpoint"):
     evaluation.evaluate_checkpoint(None, default.get_config("eval"), "synthetic_lidar:2")
 
 
