@@ -59,6 +59,9 @@ def get_config(arg: str = "") -> ml_collections.ConfigDict:
   config.data.dataset = "synthetic_lidar"
   config.data.split = "train"
   config.data.num_points = 384  # points sampled from each cloud.
+  # > 0: sample each cloud to crop_from points (the density to learn) and train on a window of
+  # num_points of them around a random point (data.sampling.crop_pair); 0: sample num_points.
+  config.data.crop_from = 0
   config.data.augment = ml_collections.ConfigDict()  # training augmentation; identity = off.
   config.data.augment.rotation_deg = 0.0  # uniform rotation about the vertical axis, +- degrees.
   config.data.augment.scale = (1.0, 1.0)  # uniform scale range (low, high).
@@ -68,7 +71,9 @@ def get_config(arg: str = "") -> ml_collections.ConfigDict:
 
   config.train = ml_collections.ConfigDict()
   config.train.stage = 1  # 1: network without refinement, sequence loss; 2: refinement only.
-  config.train.init_from = ""  # stage 2: the stage-1 workdir or step folder to start from.
+  # A workdir or step folder: stage 2 takes its backbone (required); stage 1 warm-starts from all
+  # its parameters (a new round with another recipe), "" = from scratch.
+  config.train.init_from = ""
   config.train.batch_size = 2  # pairs per step, split over all local devices.
   config.train.num_epochs = 1  # used when num_steps is 0.
   config.train.num_steps = 800  # > 0: train this many steps (instead of num_epochs).

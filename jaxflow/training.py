@@ -4,7 +4,8 @@ Steps are counted in updates: step s is the s-th update (it consumed batch s - 1
 checkpoint s holds the state after it. Rerunning the same command resumes from the newest checkpoint;
 `BatchLoader.batch(step)` is deterministic, so the resumed run replays the same data order.
 
-Two stages (paper 4.1). Stage 1 trains everything but the refinement with the sequence loss. Stage 2
+Two stages (paper 4.1). Stage 1 trains everything but the refinement with the sequence loss (from
+scratch, or warm-started from another run's parameters with `config.train.init_from`). Stage 2
 loads stage 1 (`config.train.init_from`) and trains only the refinement with the refinement loss: the
 gradient is taken only w.r.t. the trainable parameters (the others are closed over), the optimiser
 is an `optax.multi_transform` whose frozen group is `set_to_zero` (no optimiser state), and the model
@@ -219,18 +220,24 @@ def restore_checkpoint(path, step: int | None = None):
   return state, config, step
 
 
-def _load_stage1_backbone(params, config):
-  """`params` with every subtree but the refinement taken from `config.train.init_from`."""
+def _load_init_params(params, config):
+  """`params` with subtrees taken from the run `config.train.init_from`: in stage 2 every subtree but
+  the refinement (the stage-1 backbone), in stage 1 every subtree (a warm start: a new round with
+  another recipe continues from the previous round's parameters; the optimiser starts afresh)."""
+  stage = config.train.stage
   if not config.train.init_from:
-    raise ConfigError("stage 2 needs config.train.init_from (the stage-1 workdir or step folder)")
-  stage1, stage1_config, step = restore_checkpoint(config.train.init_from)
-  diffs = checkpointing.model_differences(stage1_config, config)
+    if stage == 2:
+      raise ConfigError("stage 2 needs config.train.init_from (the stage-1 workdir or step folder)")
+    return params
+  loaded_state, loaded_config, step = restore_checkpoint(config.train.init_from)
+  diffs = checkpointing.model_differences(loaded_config, config)
   if diffs:
     raise CheckpointError(
       f"{config.train.init_from}: its model differs from this config's ({'; '.join(diffs)})"
     )
-  loaded = {k: v for k, v in stage1.params.items() if k != REFINE}
-  print(f"stage 2: backbone loaded from {config.train.init_from} (step {step})", file=sys.stderr)
+  loaded = {k: v for k, v in loaded_state.params.items() if stage == 1 or k != REFINE}
+  what = "backbone" if stage == 2 else "parameters"
+  print(f"stage {stage}: {what} loaded from {config.train.init_from} (step {step})", file=sys.stderr)
   return {**params, **loaded}
 
 
@@ -309,7 +316,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
   loader = BatchLoader(
     dataset, config.train.batch_size, config.data.num_points, seed=config.seed, shuffle=True,
     augment=augmentation(config), skip_broken=config.data.skip_broken,
-    prefetch=config.data.prefetch,
+    prefetch=config.data.prefetch, crop_from=config.data.crop_from,
   )
   total_steps = config.train.num_steps or config.train.num_epochs * loader.steps_per_epoch
   tx = make_optimizer(config, total_steps)
@@ -339,8 +346,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
   else:
     start = 0
     params = init_params(model, config, jax.random.key(config.seed))
-    if config.train.stage == 2:
-      params = _load_stage1_backbone(params, config)
+    params = _load_init_params(params, config)
     state = jax.device_put(create_train_state(params, tx), replicated)
   checkpointing.write_config(config, workdir)
 

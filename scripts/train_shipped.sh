@@ -3,7 +3,8 @@
 # Each round is the exact command that was run; rerunning a train.py line on the same workdir resumes
 # from its newest checkpoint (a later round may raise --config.train.num_steps). See MODEL_CARD.md.
 #
-#   bash scripts/train_shipped.sh            # all rounds, then the copy
+#   bash scripts/train_shipped.sh            # round 2 (the shipped one), then the copy
+#   bash scripts/train_shipped.sh round1     # round 1, replaced, for the record
 #   bash scripts/train_shipped.sh copy       # only the copy of the final stage-2 step
 #   bash scripts/train_shipped.sh eval [DATA]  # the model card's tables (DATA: ../shared/data)
 #   POINTS=1024 bash scripts/train_shipped.sh eval [DATA]  # the same at the training density
@@ -42,23 +43,45 @@ print(sys.argv[1], 'zero flow EPE', round(r['epe'], 4))
   exit 0
 fi
 
-if [[ "${1:-}" != "copy" ]]; then
-  # Stage 1, round 1: 600 steps of 2 pairs x 1024 points on synthetic_mix.
-  $NICE python train.py --config configs/shipped.py --workdir runs/shipped
-  # Stage 2: the graph refinement on the frozen round-1 network, 150 steps.
-  $NICE python train.py --config configs/shipped.py:stage2 --workdir runs/shipped_stage2 \
+if [[ "${1:-}" == "round1" ]]; then
+  # Round 1 (replaced by round 2, kept for the record): 1024 points sampled from the whole clouds.
+  $NICE python train.py --config configs/shipped.py:round1 --workdir runs/shipped
+  $NICE python train.py --config configs/shipped.py:round1_stage2 --workdir runs/shipped_stage2 \
     --config.train.init_from=runs/shipped
+  exit 0
+fi
+
+if [[ "${1:-}" != "copy" ]]; then
+  # Round 2. Warm-up: 1200 steps on 384-point windows of clouds sampled to 8192 points, from scratch.
+  $NICE python train.py --config configs/shipped.py:warmup --workdir runs/shipped_r2_warmup
+  # Stage 1 on 1024-point windows, from the warm-up: 4 iterations to step 1505, then 8
+  # (the model is run for 32 at test time) to the config's num_steps. The second line resumes.
+  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r2 \
+    --config.train.num_iters=4 --config.train.num_steps=1505
+  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r2
+  # Stage 2: the graph refinement on the frozen stage-1 network.
+  $NICE python train.py --config configs/shipped.py:stage2 --workdir runs/shipped_r2_stage2
 fi
 
 # Ship only the final stage-2 step: it holds every parameter (the frozen backbone too), the config and
 # the optimiser state of the refinement alone (stage 2's frozen group keeps none).
-STEP=$(ls runs/shipped_stage2/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
+STEP=$(ls runs/shipped_r2_stage2/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
 DEST=checkpoints/jaxflow_synthetic
 mkdir -p "$DEST"
 find "$DEST" -mindepth 1 -maxdepth 1 -name '[0-9]*' -type d -exec rm -rf {} +
-cp -r "runs/shipped_stage2/checkpoints/$STEP" "$DEST/$STEP"
-cp runs/shipped_stage2/config.json "$DEST/config.json"
-cat runs/shipped/metrics.jsonl runs/shipped_stage2/metrics.jsonl > runs/shipped_stage2/both_stages.jsonl
-python -c "from jaxflow import viz; viz.plot_learning_curves(
-  'runs/shipped_stage2/both_stages.jsonl', '$DEST/learning_curve.png')"
+cp -r "runs/shipped_r2_stage2/checkpoints/$STEP" "$DEST/$STEP"
+cp runs/shipped_r2_stage2/config.json "$DEST/config.json"
+# One learning curve for the rounds: each run's steps are counted on from where the previous ended.
+python - "$DEST/learning_curve.png" runs/shipped_r2_warmup runs/shipped_r2 runs/shipped_r2_stage2 <<'PY'
+import json, pathlib, sys
+from jaxflow import viz
+lines, offset = [], 0
+for run in sys.argv[2:]:
+  records = [json.loads(l) for l in pathlib.Path(run, "metrics.jsonl").read_text().splitlines() if l]
+  lines += [json.dumps({**r, "step": r["step"] + offset}) for r in records]
+  offset += records[-1]["step"]
+joined = pathlib.Path("runs/shipped_r2_stage2/all_rounds.jsonl")
+joined.write_text("\n".join(lines) + "\n")
+viz.plot_learning_curves(joined, sys.argv[1])
+PY
 du -sh "$DEST"

@@ -7,7 +7,7 @@ import pytest
 
 from jaxflow.data import BatchLoader, DataError, Pair, eval_batches, sample_pair
 from jaxflow.data.readers import Dataset
-from jaxflow.data.sampling import augment_pair
+from jaxflow.data.sampling import augment_pair, crop_pair
 from jaxflow.errors import ConfigError
 
 
@@ -64,6 +64,52 @@ def test_augmentation_transforms_flow_consistently():
   assert augment_pair(pair, {}, np.random.default_rng(5)) is pair
   with pytest.raises(ConfigError, match="unknown keys"):
     BatchLoader(Numbered(), 2, 8, seed=0, augment={"flip": True})
+
+
+def test_crop_pair_takes_the_windows_nearest_the_centre_and_its_image():
+  rng = np.random.default_rng(0)
+  pc1 = rng.uniform(-5, 5, (300, 3)).astype(np.float32)
+  flow = np.full((300, 3), [2.0, 0.0, 0.0], np.float32)  # the whole scene moves 2 m in x
+  pc2 = (pc1 + flow)[rng.permutation(300)][:280]
+  pair = Pair(pc1=pc1, pc2=pc2, flow=flow, mask=np.arange(300) % 3 == 0, name="scene")
+  crop = crop_pair(pair, 50, np.random.default_rng(7))
+  assert crop.pc1.shape == crop.pc2.shape == (50, 3) and crop.name == "scene"
+  # Rows stay together: flow and mask are those of the pc1 rows kept.
+  rows = [int(np.flatnonzero((pc1 == p).all(1))[0]) for p in crop.pc1]
+  assert np.array_equal(crop.flow, flow[rows])
+  assert np.array_equal(crop.mask, np.array(rows) % 3 == 0)
+  # Independent check: some pc1 point c has exactly these 50 nearest neighbours (a plain loop), and
+  # pc2's window is the 50 pc2 points nearest c + 2 m in x.
+  centres = []
+  for c in range(300):
+    order = sorted(range(300), key=lambda j: float(np.sum((pc1[j] - pc1[c]) ** 2)))
+    if set(order[:50]) == set(rows):
+      centres.append(c)
+  assert len(centres) >= 1
+  target = pc1[centres[0]] + flow[centres[0]]
+  want = sorted(range(280), key=lambda j: float(np.sum((pc2[j] - target) ** 2)))[:50]
+  assert {tuple(p) for p in crop.pc2} == {tuple(pc2[j]) for j in want}
+  # Most pc1 points of the window land inside the pc2 window's extent: it follows the motion.
+  moved = crop.pc1 + crop.flow
+  inside = np.all((moved >= crop.pc2.min(0) - 0.5) & (moved <= crop.pc2.max(0) + 0.5), axis=1)
+  assert inside.mean() > 0.8
+  with pytest.raises(ConfigError, match="fewer than the window"):
+    crop_pair(pair, 290, np.random.default_rng(0))  # pc2 has 280
+
+
+def test_loader_crops_windows_at_the_sampled_density():
+  ds = Numbered(n=6, sizes={i: 200 for i in range(6)})
+  plain = BatchLoader(ds, 2, 16, seed=3, prefetch=0)
+  cropped = BatchLoader(ds, 2, 16, seed=3, prefetch=0, crop_from=120)
+  a, b = cropped.batch(1), cropped.batch(1)
+  assert a["pc1"].shape == (2, 16, 3) and np.array_equal(a["pc1"], b["pc1"])  # deterministic
+  assert np.array_equal(a["flow"], 2 * a["pc1"] + 1)
+  # Pair rows are (i, row, 0): a window of 16 of 120 rows sampled from 200 spans far fewer rows
+  # than 16 rows sampled from all 200.
+  span = lambda batch: np.ptp(batch["pc1"][:, :, 1], axis=1)
+  assert span(a).max() < 60 and span(plain.batch(1)).min() > 100
+  with pytest.raises(ConfigError, match="crop_from"):
+    BatchLoader(ds, 2, 16, seed=0, crop_from=8)
 
 
 def _ids(batch):

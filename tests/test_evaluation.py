@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from configs import default
-from jaxflow import evaluation, training
+from jaxflow import checkpointing, evaluation, training
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError
 
@@ -150,3 +150,17 @@ def test_cli_bad_checkpoint_is_one_line_and_exit_2(workdir, tmp_path):
   assert proc.returncode == 2
   lines = proc.stderr.strip().splitlines()
   assert len(lines) == 1 and "knn: 4 != 8" in lines[0], proc.stderr
+
+
+def test_shipped_recipe_configs_build_the_shipped_model():
+  from configs import shipped
+
+  if not evaluation.SHIPPED_CHECKPOINT.exists():
+    pytest.skip("no shipped checkpoint in this tree")
+  _, _, stored = checkpointing.open_checkpoint(evaluation.SHIPPED_CHECKPOINT)
+  for arg in shipped.ARGS:
+    config = shipped.get_config(arg)
+    assert not checkpointing.model_differences(config, stored), arg
+  assert stored.train.stage == 2 and stored.data.crop_from == shipped.get_config().data.crop_from
+  with pytest.raises(ValueError, match="takes one of"):
+    shipped.get_config("round3")

@@ -116,6 +116,27 @@ def test_stage2_freezes_backbone_bitwise_and_trains_refinement(stage1, tmp_path)
   assert n_opt == 2 * n_refine  # Adam's mu and nu
 
 
+def test_stage1_init_from_warm_starts_every_parameter(stage1, tmp_path):
+  stage1_dir, stage1_state = stage1
+  config = smoke({"train.init_from": str(stage1_dir), "train.num_steps": 1, "eval.dataset": ""})
+  model = build_model(config.model)
+  fresh = flat(training.init_params(model, config, jax.random.key(config.seed)))
+  loaded = flat(training._load_init_params(training.init_params(model, config,
+                                                                 jax.random.key(config.seed)),
+                                            config))
+  before = flat(stage1_state.params)
+  assert all(np.array_equal(loaded[k], before[k]) for k in before)
+  assert any(not np.array_equal(loaded[k], fresh[k]) for k in fresh)
+  # One step of the new round starts from those parameters with a fresh optimiser.
+  state = training.train_and_evaluate(config, tmp_path)
+  assert int(state.step) == 1
+  after = flat(state.params)
+  assert all(np.allclose(after[k], before[k], atol=2 * config.train.lr) for k in before)
+  assert any(not np.array_equal(after[k], before[k]) for k in before)
+  with pytest.raises(CheckpointError, match="model differs"):
+    training._load_init_params({}, smoke({"train.init_from": str(stage1_dir), "model.knn": 4}))
+
+
 def test_save_params_writes_a_workdir_that_loads(tmp_path):
   config = smoke()
   params = training.init_params(build_model(config.model), config, jax.random.key(3))

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterable, Iterator
 import numpy as np
 
 from jaxflow.data.readers import Pair
-from jaxflow.data.sampling import augment_pair, check_augment, sample_pair
+from jaxflow.data.sampling import augment_pair, check_augment, crop_pair, sample_pair
 from jaxflow.errors import ConfigError, DataError
 
 
@@ -91,17 +91,22 @@ class BatchLoader:
   inside its loops); workers > 0 computes them in that many spawned processes instead, for
   CPU-bound datasets (synthetic scenes) on machines with cores to spare (the loader and its dataset
   are pickled to them, and the calling script needs the usual `if __name__ == "__main__":` guard).
+  crop_from > 0 samples each cloud to crop_from points first (the density to learn, e.g. the test's
+  8192) and trains on a window of num_points of them (`sampling.crop_pair`); 0 samples num_points.
   Batch dict: float32 'pc1', 'pc2', 'flow' (B x N x 3), 'mask' (B x N, 1/0) and 'replaced' (int, the
   clouds sampled with replacement because they had fewer than num_points points).
   """
 
   def __init__(self, dataset, batch_size: int, num_points: int, seed: int, shuffle: bool = True,
                augment: dict | None = None, skip_broken: bool = False, prefetch: int = 2,
-               workers: int = 0):
+               workers: int = 0, crop_from: int = 0):
     if batch_size < 1 or num_points < 1 or seed < 0 or prefetch < 0 or workers < 0:
       raise ConfigError("BatchLoader: need batch_size >= 1, num_points >= 1, seed >= 0, prefetch >= 0, "
                         f"workers >= 0; got {batch_size}, {num_points}, {seed}, {prefetch}, "
                         f"{workers}")
+    if crop_from and crop_from < num_points:
+      raise ConfigError(f"BatchLoader: crop_from ({crop_from}) must be 0 or >= num_points "
+                        f"({num_points})")
     self.dataset = dataset
     self.batch_size = batch_size
     self.num_points = num_points
@@ -111,6 +116,7 @@ class BatchLoader:
     self.skip_broken = skip_broken
     self.prefetch = prefetch
     self.workers = workers
+    self.crop_from = crop_from
     self.steps_per_epoch = len(dataset) // batch_size
     if self.steps_per_epoch == 0:
       raise ConfigError(f"{getattr(dataset, 'name', 'dataset')}: {len(dataset)} pairs, fewer than "
@@ -153,7 +159,9 @@ class BatchLoader:
         continue
       rng = np.random.default_rng((self.seed, epoch, index))
       try:
-        pair, replaced = sample_pair(self.dataset[index], self.num_points, rng)
+        pair, replaced = sample_pair(self.dataset[index], self.crop_from or self.num_points, rng)
+        if self.crop_from:
+          pair = crop_pair(pair, self.num_points, rng)
       except DataError as e:
         if not self.skip_broken:
           raise
