@@ -10,7 +10,7 @@ a warm-up on 384-point windows from scratch, then 1024-point windows; then stage
 
 Round 1 (replaced; `round1`, `round1_stage2`): 1024 points sampled from the whole clouds.
 scripts/train_shipped.sh holds the exact commands (and the copy into checkpoints/); the model card
-checkpoints/jaxflow_synthetic/MODEL_CARD.md what each round gave.
+checkpoints/jaxflow_synthetic/MODEL_CARD.md says what each round gave.
 """
 
 from configs import default
