@@ -8,6 +8,11 @@ from jaxflow.errors import ConfigError, DataError
 AUGMENT_KEYS = ("rotation_deg", "scale", "jitter")
 
 
+def take(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+  """a[idx] along the first axis; several times faster than fancy indexing on N x 3 rows."""
+  return a.take(idx, axis=0)
+
+
 def sample_indices(n: int, num_points: int, rng: np.random.Generator) -> tuple[np.ndarray, bool]:
   """num_points indices into n; with n < num_points every point once plus random repeats."""
   if n >= num_points:
@@ -26,7 +31,6 @@ def sample_pair(pair: Pair, num_points: int, rng: np.random.Generator) -> tuple[
     raise DataError(pair.name, "cannot sample an empty cloud")
   idx1, rep1 = sample_indices(len(pair.pc1), num_points, rng)
   idx2, rep2 = sample_indices(len(pair.pc2), num_points, rng)
-  take = lambda a, idx: a.take(idx, axis=0)  # several times faster than a[idx] on N x 3 rows
   sampled = Pair(pc1=take(pair.pc1, idx1), pc2=take(pair.pc2, idx2), flow=take(pair.flow, idx1),
                  mask=take(pair.mask, idx1), name=pair.name)
   return sampled, int(rep1) + int(rep2)
@@ -53,7 +57,6 @@ def crop_pair(pair: Pair, num_points: int, rng: np.random.Generator) -> Pair:
 
   idx1 = nearest(pair.pc1, pair.pc1[centre])
   idx2 = nearest(pair.pc2, pair.pc1[centre] + pair.flow[centre])
-  take = lambda a, idx: a.take(idx, axis=0)
   return Pair(pc1=take(pair.pc1, idx1), pc2=take(pair.pc2, idx2), flow=take(pair.flow, idx1),
               mask=take(pair.mask, idx1), name=pair.name)
 
