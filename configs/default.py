@@ -94,6 +94,9 @@ def get_config(arg: str = "") -> ml_collections.ConfigDict:
   config.eval.num_iters = 8
   config.eval.batch_size = 8
   config.eval.seed = 0  # point sampling of the evaluation pairs.
+  # > 0: evaluate on these pairs every this many steps during training too (held-out EPE as it
+  # trains: WORKDIR/eval_metrics.jsonl and the learning curve); 0: only at the end.
+  config.eval.every = 0
 
   if arg == "smoke":
     config.model.widths = (16, 16, 16, 32)

@@ -6,8 +6,10 @@ from pathlib import Path
 
 
 def plot_learning_curve(workdir) -> Path | None:
-  """Loss and gradient norm against step (log scale); the evaluation EPEs as lines when
-  WORKDIR/eval.json exists. Returns the PNG's path, or None before anything was logged."""
+  """Loss and gradient norm against step (log scale); the held-out EPE logged during training
+  (WORKDIR/eval_metrics.jsonl) as points joined by a line, and the end-of-run evaluation EPEs as
+  horizontal lines when WORKDIR/eval.json exists. Returns the PNG's path, or None before anything
+  was logged."""
   workdir = Path(workdir)
   metrics = workdir / "metrics.jsonl"
   if not metrics.exists():
@@ -26,6 +28,12 @@ def plot_learning_curve(workdir) -> Path | None:
     ax_loss.plot([r["step"] for r in rs], [r["loss"] for r in rs], label=f"train loss (stage {stage})")
     rs = [r for r in rs if r["grad_norm"] is not None]
     ax_grad.plot([r["step"] for r in rs], [r["grad_norm"] for r in rs], label=f"stage {stage}")
+  heldout = workdir / "eval_metrics.jsonl"
+  if heldout.exists():
+    rs = [json.loads(l) for l in heldout.read_text().splitlines() if l.strip()]
+    if rs:
+      ax_loss.plot([r["step"] for r in rs], [r["epe"] for r in rs], "o-", c="k", ms=3, lw=1,
+                   label="held-out EPE (m)")
   eval_json = workdir / "eval.json"
   if eval_json.exists():
     results = json.loads(eval_json.read_text())

@@ -40,14 +40,16 @@ def model_predict_fn(model, num_iters: int, refine: bool):
   return jax.jit(predict)
 
 
-def _run(predict, args, dataset, num_points: int | None, batch_size: int, seed: int,
-         render_dir=None) -> dict:
-  """Averages the metrics of `predict(*args, pc1, pc2)` over the dataset's pairs."""
-  metrics_fn = jax.jit(per_pair_metrics)
-  compiled = {}  # by input shapes; compiled before timing
+_metrics_fn = jax.jit(per_pair_metrics)
+
+
+def _run(predict, args, batches, render_dir=None, compiled=None) -> dict:
+  """Averages the metrics of `predict(*args, pc1, pc2)` over the pairs of `batches`. `compiled`
+  caches the compiled `predict` by input shapes (compiled before timing) across calls."""
+  compiled = {} if compiled is None else compiled
   sums = dict.fromkeys(METRICS, 0.0)
   pairs, seconds = 0, 0.0
-  for batch in eval_batches(dataset, batch_size, num_points, seed=seed):
+  for batch in batches:
     pc1, pc2 = jnp.asarray(batch["pc1"]), jnp.asarray(batch["pc2"])
     key = (pc1.shape, pc2.shape)
     if key not in compiled:
@@ -55,7 +57,7 @@ def _run(predict, args, dataset, num_points: int | None, batch_size: int, seed: 
     start = time.perf_counter()
     pred = compiled[key](*args, pc1, pc2).block_until_ready()
     seconds += time.perf_counter() - start
-    per_pair = jax.device_get(metrics_fn(pred, jnp.asarray(batch["flow"]),
+    per_pair = jax.device_get(_metrics_fn(pred, jnp.asarray(batch["flow"]),
                                          jnp.asarray(batch["mask"])))
     valid = np.asarray(batch["pair_valid"], np.float64)
     for k in METRICS:
@@ -74,15 +76,33 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
              refine: bool = False, seed: int = 0, render_dir=None) -> dict:
   """Metrics of the model's flow on every pair of `dataset`, with pairs and ms_per_pair."""
   predict = model_predict_fn(model, num_iters, refine)
-  results = _run(predict, (params,), dataset, num_points, batch_size, seed, render_dir)
+  batches = eval_batches(dataset, batch_size, num_points, seed=seed)
+  results = _run(predict, (params,), batches, render_dir)
   results["output"] = "refined" if refine else "coarse"
   return results
+
+
+class Evaluator:
+  """`evaluate` for repeated calls on the same pairs with new parameters (the held-out evaluation
+  during training): the batches are sampled once and kept, the model is compiled once."""
+
+  def __init__(self, model, dataset, *, num_points: int | None, batch_size: int,
+               num_iters: int = 32, refine: bool = False, seed: int = 0):
+    self.batches = list(eval_batches(dataset, batch_size, num_points, seed=seed))
+    self.predict = model_predict_fn(model, num_iters, refine)
+    self.output = "refined" if refine else "coarse"
+    self.compiled = {}
+
+  def __call__(self, params) -> dict:
+    results = _run(self.predict, (params,), self.batches, compiled=self.compiled)
+    results["output"] = self.output
+    return results
 
 
 def evaluate_zero_flow(dataset, *, num_points: int | None, batch_size: int, seed: int = 0) -> dict:
   """The same metrics for a zero-flow prediction on the same pairs (the trivial baseline)."""
   predict = jax.jit(lambda pc1, pc2: jnp.zeros_like(pc1))
-  return _run(predict, (), dataset, num_points, batch_size, seed)
+  return _run(predict, (), eval_batches(dataset, batch_size, num_points, seed=seed))
 
 
 def _render(render_dir, batch, pred_BxNx3):

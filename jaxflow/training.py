@@ -37,6 +37,7 @@ from jaxflow import checkpointing, curves, evaluation
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError, NonFiniteError
 from jaxflow.losses import refinement_loss, sequence_loss
+from jaxflow.metrics import METRICS
 from jaxflow.model import build_model
 
 BATCH_KEYS = ("pc1", "pc2", "flow", "mask")
@@ -303,6 +304,9 @@ def _check_config(config, n_devices: int):
       raise ConfigError(f"config.train.{name} must be >= 1, got {t[name]}")
   if t.num_steps < 1 and t.num_epochs < 1:
     raise ConfigError("config.train.num_steps or config.train.num_epochs must be >= 1")
+  if config.eval.every < 0 or (config.eval.every and not config.eval.dataset):
+    raise ConfigError(f"config.eval.every={config.eval.every} needs to be 0, or > 0 with a "
+                      f"config.eval.dataset (got {config.eval.dataset!r})")
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState:
@@ -352,6 +356,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
 
   train_step = jit_train_step(model, tx, config, mesh)
   log = MetricsLog(workdir / "metrics.jsonl", start)
+  heldout, eval_log = None, None
+  if config.eval.every:
+    heldout = heldout_evaluator(model, config)
+    eval_log = MetricsLog(workdir / "eval_metrics.jsonl", start)
   pairs_per_step = config.train.batch_size
   pending = []  # (step, metrics on device) since the last fetch
   window_start = time.perf_counter()
@@ -410,6 +418,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
             fetch_and_log(step)
           if step % config.train.checkpoint_every == 0 or step == total_steps:
             save(step)
+          if heldout is not None and step % config.eval.every == 0:
+            started = time.perf_counter()
+            results = heldout(state.params)
+            eval_log.write({"step": step, "stage": config.train.stage, "time": time.time(),
+                            **{k: results[k] for k in (*METRICS, "pairs")}})
+            bar.write(f"step {step}: held-out EPE {results['epe']:.4f} m "
+                      f"({config.eval.dataset}, {results['pairs']} pairs)", file=sys.stderr)
+            window_start += time.perf_counter() - started  # pairs_per_s counts training alone
           if stop.signum is not None:
             save(step)
             curves.plot_learning_curve(workdir)
@@ -426,7 +442,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
     print(f"skipped {len(loader.broken)} unreadable sample(s) in training: "
           + ", ".join(map(str, loader.broken)), file=sys.stderr)
   if config.eval.dataset:
-    results = evaluate_run(model, state.params, config)
+    results = evaluate_run(model, state.params, config, heldout)
     (workdir / "eval.json").write_text(json.dumps(results, indent=2) + "\n")
     print(evaluation.format_table(
       [(f"{config.eval.dataset} ({config.eval.split})", results["model"]),
@@ -436,14 +452,22 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
   return state
 
 
-def evaluate_run(model, params, config) -> dict:
-  """{"model": metrics, "zero_flow": metrics} on `config.eval`'s held-out pairs."""
+def _eval_settings(config) -> dict:
+  return dict(num_points=config.eval.num_points or None, batch_size=config.eval.batch_size,
+              seed=config.eval.seed)
+
+
+def heldout_evaluator(model, config) -> evaluation.Evaluator:
+  """The model's metrics on `config.eval`'s held-out pairs, as the run's stage outputs them."""
   ds = open_dataset(config.eval.dataset, split=config.eval.split)
-  settings = dict(num_points=config.eval.num_points or None, batch_size=config.eval.batch_size,
-                  seed=config.eval.seed)
-  refine = config.train.stage == 2
-  return {
-    "model": evaluation.evaluate(model, params, ds, num_iters=config.eval.num_iters,
-                                 refine=refine, **settings),
-    "zero_flow": evaluation.evaluate_zero_flow(ds, **settings),
-  }
+  return evaluation.Evaluator(model, ds, num_iters=config.eval.num_iters,
+                              refine=config.train.stage == 2, **_eval_settings(config))
+
+
+def evaluate_run(model, params, config, evaluator=None) -> dict:
+  """{"model": metrics, "zero_flow": metrics} on `config.eval`'s held-out pairs (`evaluator`: the
+  run's `heldout_evaluator`, already compiled)."""
+  evaluator = evaluator or heldout_evaluator(model, config)
+  ds = open_dataset(config.eval.dataset, split=config.eval.split)
+  return {"model": evaluator(params),
+          "zero_flow": evaluation.evaluate_zero_flow(ds, **_eval_settings(config))}

@@ -152,7 +152,8 @@ def render_error(pc1_Nx3, flow_Nx3, gt_Nx3, path, mask_N=None, clip: float = ERR
 
 def plot_learning_curves(metrics_jsonl, path) -> pathlib.Path | None:
   """Loss (log) and gradient norm vs step, one line per training stage, from a metrics.jsonl
-  (jaxflow.curves' plot; an eval.json beside it adds the evaluation EPEs). None when it is empty."""
+  (jaxflow.curves' plot; an eval.json or eval_metrics.jsonl beside it adds the evaluation EPEs).
+  None when it is empty."""
   metrics_jsonl = pathlib.Path(metrics_jsonl)
   with tempfile.TemporaryDirectory() as tmp:
     records = [json.loads(l) for l in metrics_jsonl.read_text().splitlines() if l.strip()]
@@ -160,8 +161,9 @@ def plot_learning_curves(metrics_jsonl, path) -> pathlib.Path | None:
       r.setdefault("stage", 1)
       r.setdefault("grad_norm", None)
     (pathlib.Path(tmp) / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
-    if (metrics_jsonl.parent / "eval.json").exists():
-      shutil.copy(metrics_jsonl.parent / "eval.json", pathlib.Path(tmp) / "eval.json")
+    for beside in ("eval.json", "eval_metrics.jsonl"):
+      if (metrics_jsonl.parent / beside).exists():
+        shutil.copy(metrics_jsonl.parent / beside, pathlib.Path(tmp) / beside)
     made = curves.plot_learning_curve(tmp)
     if made is None:
       return None

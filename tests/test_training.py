@@ -15,9 +15,9 @@ import pytest
 from flax import traverse_util
 
 from configs import default, stage2_synthetic
-from jaxflow import checkpointing, training
+from jaxflow import checkpointing, evaluation, training
 from jaxflow.data import BatchLoader, open_dataset
-from jaxflow.errors import CheckpointError, DataError, NonFiniteError
+from jaxflow.errors import CheckpointError, ConfigError, DataError, NonFiniteError
 from jaxflow.model import build_model
 
 REPO = Path(__file__).absolute().parent.parent
@@ -46,7 +46,7 @@ def flat(params):
 @pytest.fixture(scope="module")
 def stage1(tmp_path_factory):
   workdir = tmp_path_factory.mktemp("stage1")
-  state = training.train_and_evaluate(smoke(), workdir)
+  state = training.train_and_evaluate(smoke({"eval.every": 12}), workdir)
   return workdir, state
 
 
@@ -94,6 +94,33 @@ def test_smoke_run_writes_checkpoints_metrics_curve_and_eval(stage1):
   assert step == total and saved_config.train.stage == 1
   a, b = flat(restored.params), flat(state.params)
   assert all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_heldout_evaluation_during_training_matches_evaluating_the_checkpoint(stage1):
+  workdir, _ = stage1
+  config = smoke()
+  records = [json.loads(l) for l in (workdir / "eval_metrics.jsonl").read_text().splitlines()]
+  assert [r["step"] for r in records] == [12, 24]
+  ds = open_dataset(config.eval.dataset, split=config.eval.split)
+  model = build_model(config.model)
+  for record in records:  # the checkpoints of those steps, evaluated afresh on the same pairs
+    state, _, _ = training.restore_checkpoint(workdir, step=record["step"])
+    fresh = evaluation.evaluate(model, state.params, ds, num_points=config.eval.num_points,
+                                batch_size=config.eval.batch_size, num_iters=config.eval.num_iters)
+    assert record["pairs"] == fresh["pairs"] == 4
+    for k in ("epe", "acc_strict", "acc_relax", "outliers", "angle"):
+      assert np.isclose(record[k], fresh[k], rtol=1e-5, atol=1e-7), k
+  assert records[0]["epe"] != records[1]["epe"]
+  # The end-of-run evaluation is the same as the last held-out one.
+  final = json.loads((workdir / "eval.json").read_text())["model"]
+  assert np.isclose(final["epe"], records[-1]["epe"], rtol=1e-6)
+
+
+def test_heldout_evaluation_needs_a_dataset(tmp_path):
+  for overrides in ({"eval.every": 5, "eval.dataset": ""}, {"eval.every": -1}):
+    with pytest.raises(ConfigError, match="config.eval.every"):
+      training.train_and_evaluate(smoke(overrides), tmp_path)
+  assert not (tmp_path / "checkpoints").exists()
 
 
 def test_stage2_freezes_backbone_bitwise_and_trains_refinement(stage1, tmp_path):
