@@ -3,7 +3,8 @@
 # Each round is the exact command that was run; rerunning a train.py line on the same workdir resumes
 # from its newest checkpoint (a later round may raise --config.train.num_steps). See MODEL_CARD.md.
 #
-#   bash scripts/train_shipped.sh            # round 2 (the shipped one), then the copy
+#   bash scripts/train_shipped.sh            # round 3 (the shipped one; needs round 2), then the copy
+#   bash scripts/train_shipped.sh round2     # round 2, which round 3 continues
 #   bash scripts/train_shipped.sh round1     # round 1, replaced, for the record
 #   bash scripts/train_shipped.sh copy       # only the copy of the final stage-2 step
 #   bash scripts/train_shipped.sh eval [DATA]  # the model card's tables (DATA: ../shared/data)
@@ -51,37 +52,53 @@ if [[ "${1:-}" == "round1" ]]; then
   exit 0
 fi
 
-if [[ "${1:-}" != "copy" ]]; then
+if [[ "${1:-}" == "round2" ]]; then
   # Round 2. Warm-up: 1200 steps on 384-point windows of clouds sampled to 8192 points, from scratch.
-  $NICE python train.py --config configs/shipped.py:warmup --workdir runs/shipped_r2_warmup
+  $NICE python train.py --config configs/shipped.py:round2_warmup --workdir runs/shipped_r2_warmup
   # Stage 1 on 1024-point windows, from the warm-up: 4 iterations to step 1505, then 8
   # (the model is run for 32 at test time) to the config's num_steps. The second line resumes.
-  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r2 \
+  $NICE python train.py --config configs/shipped.py:round2 --workdir runs/shipped_r2 \
     --config.train.num_iters=4 --config.train.num_steps=1505
-  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r2
+  $NICE python train.py --config configs/shipped.py:round2 --workdir runs/shipped_r2
+  # Stage 2 of round 2 (replaced by round 3's).
+  $NICE python train.py --config configs/shipped.py:round2_stage2 --workdir runs/shipped_r2_stage2
+  exit 0
+fi
+
+if [[ "${1:-}" != "copy" ]]; then
+  # Round 3: round 2's stage 1 continued with 16 iterations and a decaying rate, then stage 2.
+  [[ -d runs/shipped_r2/checkpoints ]] || bash "$0" round2
+  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r3
   # Stage 2: the graph refinement on the frozen stage-1 network.
-  $NICE python train.py --config configs/shipped.py:stage2 --workdir runs/shipped_r2_stage2
+  $NICE python train.py --config configs/shipped.py:stage2 --workdir runs/shipped_r3_stage2
 fi
 
 # Ship only the final stage-2 step: it holds every parameter (the frozen backbone too), the config and
 # the optimiser state of the refinement alone (stage 2's frozen group keeps none).
-STEP=$(ls runs/shipped_r2_stage2/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
+STEP=$(ls runs/shipped_r3_stage2/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
 DEST=checkpoints/jaxflow_synthetic
 mkdir -p "$DEST"
 find "$DEST" -mindepth 1 -maxdepth 1 -name '[0-9]*' -type d -exec rm -rf {} +
-cp -r "runs/shipped_r2_stage2/checkpoints/$STEP" "$DEST/$STEP"
-cp runs/shipped_r2_stage2/config.json "$DEST/config.json"
-# One learning curve for the rounds: each run's steps are counted on from where the previous ended.
-python - "$DEST/learning_curve.png" runs/shipped_r2_warmup runs/shipped_r2 runs/shipped_r2_stage2 <<'PY'
-import json, pathlib, sys
+cp -r "runs/shipped_r3_stage2/checkpoints/$STEP" "$DEST/$STEP"
+cp runs/shipped_r3_stage2/config.json "$DEST/config.json"
+# One learning curve for the rounds: each run's steps (training and held-out metrics) are counted on
+# from where the previous run ended; the end-of-run evaluation is the last run's.
+python - "$DEST/learning_curve.png" runs/shipped_r2_warmup runs/shipped_r2 runs/shipped_r3 \
+  runs/shipped_r3_stage2 <<'PY'
+import json, pathlib, shutil, sys
 from jaxflow import viz
-lines, offset = [], 0
+joined = pathlib.Path("runs/shipped_rounds")
+joined.mkdir(exist_ok=True)
+lines, offset = {"metrics.jsonl": [], "eval_metrics.jsonl": []}, 0
 for run in sys.argv[2:]:
-  records = [json.loads(l) for l in pathlib.Path(run, "metrics.jsonl").read_text().splitlines() if l]
-  lines += [json.dumps({**r, "step": r["step"] + offset}) for r in records]
-  offset += records[-1]["step"]
-joined = pathlib.Path("runs/shipped_r2_stage2/all_rounds.jsonl")
-joined.write_text("\n".join(lines) + "\n")
-viz.plot_learning_curves(joined, sys.argv[1])
+  for name, out in lines.items():
+    path = pathlib.Path(run, name)
+    records = [json.loads(l) for l in path.read_text().splitlines() if l] if path.exists() else []
+    out += [json.dumps({**r, "step": r["step"] + offset}) + "\n" for r in records]
+  offset = json.loads(lines["metrics.jsonl"][-1])["step"]  # where this run ended, joined
+for name, out in lines.items():
+  (joined / name).write_text("".join(out))
+shutil.copy(pathlib.Path(sys.argv[-1], "eval.json"), joined / "eval.json")
+viz.plot_learning_curves(joined / "metrics.jsonl", sys.argv[1])
 PY
 du -sh "$DEST"
