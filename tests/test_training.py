@@ -111,9 +111,24 @@ def test_heldout_evaluation_during_training_matches_evaluating_the_checkpoint(st
     for k in ("epe", "acc_strict", "acc_relax", "outliers", "angle"):
       assert np.isclose(record[k], fresh[k], rtol=1e-5, atol=1e-7), k
   assert records[0]["epe"] != records[1]["epe"]
-  # The end-of-run evaluation is the same as the last held-out one.
+  # The end-of-run evaluation is the same as the last held-out one (reused, not run again).
   final = json.loads((workdir / "eval.json").read_text())["model"]
-  assert np.isclose(final["epe"], records[-1]["epe"], rtol=1e-6)
+  assert final["epe"] == records[-1]["epe"] and final["output"] == "coarse"
+
+
+def test_evaluator_reuses_results_only_for_the_same_parameter_arrays(stage1):
+  workdir, state = stage1
+  config = smoke()
+  ds = open_dataset(config.eval.dataset, split=config.eval.split)
+  evaluator = evaluation.Evaluator(build_model(config.model), ds, num_points=config.eval.num_points,
+                                   batch_size=config.eval.batch_size, num_iters=config.eval.num_iters)
+  first = evaluator(state.params)
+  assert evaluator(state.params) == first
+  scaled = jax.tree.map(lambda x: x * 0.5, state.params)  # new arrays: evaluated afresh
+  assert evaluator(scaled)["epe"] != first["epe"]
+  restored, _, _ = training.restore_checkpoint(workdir)  # equal values, other arrays
+  again = evaluator(restored.params)
+  assert again["epe"] == first["epe"] and again is not first
 
 
 def test_heldout_evaluation_needs_a_dataset(tmp_path):
