@@ -106,11 +106,17 @@ class Evaluator:
     self._last = (leaves, dict(results))
     return results
 
+  def zero_flow(self) -> dict:
+    """`evaluate_zero_flow` on the same kept pairs."""
+    return _run(_zero_flow, (), self.batches)
+
+
+_zero_flow = jax.jit(lambda pc1, pc2: jnp.zeros_like(pc1))
+
 
 def evaluate_zero_flow(dataset, *, num_points: int | None, batch_size: int, seed: int = 0) -> dict:
   """The same metrics for a zero-flow prediction on the same pairs (the trivial baseline)."""
-  predict = jax.jit(lambda pc1, pc2: jnp.zeros_like(pc1))
-  return _run(predict, (), eval_batches(dataset, batch_size, num_points, seed=seed))
+  return _run(_zero_flow, (), eval_batches(dataset, batch_size, num_points, seed=seed))
 
 
 def _render(render_dir, batch, pred_BxNx3):

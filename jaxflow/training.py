@@ -452,22 +452,17 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
   return state
 
 
-def _eval_settings(config) -> dict:
-  return dict(num_points=config.eval.num_points or None, batch_size=config.eval.batch_size,
-              seed=config.eval.seed)
-
-
 def heldout_evaluator(model, config) -> evaluation.Evaluator:
   """The model's metrics on `config.eval`'s held-out pairs, as the run's stage outputs them."""
   ds = open_dataset(config.eval.dataset, split=config.eval.split)
-  return evaluation.Evaluator(model, ds, num_iters=config.eval.num_iters,
-                              refine=config.train.stage == 2, **_eval_settings(config))
+  return evaluation.Evaluator(
+    model, ds, num_points=config.eval.num_points or None, batch_size=config.eval.batch_size,
+    num_iters=config.eval.num_iters, refine=config.train.stage == 2, seed=config.eval.seed,
+  )
 
 
 def evaluate_run(model, params, config, evaluator=None) -> dict:
   """{"model": metrics, "zero_flow": metrics} on `config.eval`'s held-out pairs (`evaluator`: the
   run's `heldout_evaluator`, already compiled)."""
   evaluator = evaluator or heldout_evaluator(model, config)
-  ds = open_dataset(config.eval.dataset, split=config.eval.split)
-  return {"model": evaluator(params),
-          "zero_flow": evaluation.evaluate_zero_flow(ds, **_eval_settings(config))}
+  return {"model": evaluator(params), "zero_flow": evaluator.zero_flow()}

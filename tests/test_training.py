@@ -129,6 +129,10 @@ def test_evaluator_reuses_results_only_for_the_same_parameter_arrays(stage1):
   restored, _, _ = training.restore_checkpoint(workdir)  # equal values, other arrays
   again = evaluator(restored.params)
   assert again["epe"] == first["epe"] and again is not first
+  # Zero flow on the kept pairs is the baseline evaluate_zero_flow samples afresh.
+  fresh = evaluation.evaluate_zero_flow(ds, num_points=config.eval.num_points,
+                                        batch_size=config.eval.batch_size)
+  assert evaluator.zero_flow()["epe"] == fresh["epe"] > 0
 
 
 def test_heldout_evaluation_needs_a_dataset(tmp_path):
