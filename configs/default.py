@@ -25,6 +25,10 @@ def model_config() -> ml_collections.ConfigDict:
   m.knn = 32  # neighbours of each point in its own cloud, itself included.
   m.cell = "single_gate"  # "single_gate" (paper's SGFI, eq. 6) or "gru" (PV-RAFT).
   m.truncate_k = 512  # correlation candidates kept per pc1 point.
+  # > 0: the candidates kept when the model evaluates or predicts (not in training); no parameter
+  # depends on it. A network trained on windows of the test density meets many more distractors in
+  # a whole cloud, and needs more candidates there (configs/shipped.py). 0: truncate_k.
+  m.infer_truncate_k = 0
   m.corr_knn = 32  # point branch: candidates nearest to the current estimate.
   m.corr_levels = 3  # voxel branch: levels with cell size base_scale * 2**level.
   m.base_scale = 0.25  # metres.

@@ -36,12 +36,18 @@ def config_from_dict(d: dict) -> ml_collections.ConfigDict:
   return ml_collections.ConfigDict(d)
 
 
+# Model fields added after checkpoints were written without them, and the value they had then.
+ADDED_MODEL_FIELDS = {"infer_truncate_k": 0}
+
+
 def model_differences(a: ml_collections.ConfigDict, b: ml_collections.ConfigDict,
-                      fields=None) -> list[str]:
-  """`field: a != b` for each model field (or each of `fields`) where the two configs differ."""
-  da, db = config_to_dict(a.model), config_to_dict(b.model)
+                      fields=None, ignore=()) -> list[str]:
+  """`field: a != b` for each model field (or each of `fields`, less `ignore`) where the two
+  configs differ."""
+  da, db = ({**ADDED_MODEL_FIELDS, **config_to_dict(c.model)} for c in (a, b))
   names = sorted(set(da) | set(db)) if fields is None else fields
-  return [f"{k}: {da.get(k)!r} != {db.get(k)!r}" for k in names if da.get(k) != db.get(k)]
+  return [f"{k}: {da.get(k)!r} != {db.get(k)!r}" for k in names
+          if k not in ignore and da.get(k) != db.get(k)]
 
 
 def incomplete_reason(step_dir: Path) -> str | None:

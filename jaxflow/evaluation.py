@@ -26,8 +26,9 @@ from jaxflow.model import build_model
 
 # The shipped checkpoint, used by evaluate.py when --checkpoint is not given.
 SHIPPED_CHECKPOINT = Path(__file__).absolute().parent.parent / "checkpoints" / "jaxflow_synthetic"
-# Model fields that change how the model runs, not its parameters or outputs: evaluation settings.
-RUNTIME_MODEL_FIELDS = ("corr_chunk",)
+# Model fields that change neither the parameters nor the training: evaluation settings
+# (corr_chunk: memory, not results; infer_truncate_k: the correlation candidates at test time).
+RUNTIME_MODEL_FIELDS = ("corr_chunk", "infer_truncate_k")
 
 
 def model_predict_fn(model, num_iters: int, refine: bool):
@@ -178,7 +179,7 @@ def load_model(checkpoint=None, config: ml_collections.ConfigDict | None = None,
       for k in runtime:
         saved.model[k] = config.model[k]
   refine = saved.train.stage == 2 and saved.model.refine != "none"
-  return build_model(saved.model), state.params, saved, step, refine
+  return build_model(saved.model, inference=True), state.params, saved, step, refine
 
 
 def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: str | None = None,

@@ -121,9 +121,19 @@ class SceneFlowNet(nn.Module):
     return out
 
 
-def build_model(model_config: ml_collections.ConfigDict) -> SceneFlowNet:
-  """The network described by a config's `model` section."""
+# Model fields no parameter depends on: a run may warm-start from one with other values of these.
+PARAMETER_FREE_FIELDS = ("truncate_k", "corr_knn", "corr_chunk", "infer_truncate_k")
+
+
+def build_model(model_config: ml_collections.ConfigDict, inference: bool = False) -> SceneFlowNet:
+  """The network described by a config's `model` section; `inference`: as it evaluates and
+  predicts (`infer_truncate_k` candidates, when set, instead of `truncate_k`)."""
   fields = dict(model_config)
+  infer_truncate_k = fields.pop("infer_truncate_k", 0)
+  if not isinstance(infer_truncate_k, int) or infer_truncate_k < 0:
+    raise ValueError(f"infer_truncate_k must be an integer >= 0, got {infer_truncate_k!r}")
+  if inference and infer_truncate_k:
+    fields["truncate_k"] = infer_truncate_k
   fields["widths"] = tuple(fields.get("widths") or ())
   fields["refine_widths"] = tuple(fields.get("refine_widths") or ())
   known = set(SceneFlowNet.__dataclass_fields__) - {"parent", "name"}

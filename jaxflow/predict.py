@@ -24,8 +24,9 @@ memory stays linear in the number of points (time grows as N x M).
 Model. The checkpoint (default: the shipped `checkpoints/jaxflow_synthetic/` of this repository, found
 from the package, not the working directory) carries its config: the model is built from it. As in
 evaluate.py, --config only sets evaluation settings (config.eval.num_points, config.eval.num_iters);
-a model field of the given config that contradicts the checkpoint is an error, except corr_chunk. A
-stage-2 checkpoint gives the refined flow, a stage-1 one the last iteration's.
+a model field of the given config that contradicts the checkpoint is an error, except corr_chunk and
+infer_truncate_k (the correlation candidates kept at test time). A stage-2 checkpoint gives the
+refined flow, a stage-1 one the last iteration's.
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
 than the model's neighbourhood config.model.knn) prints one line naming the file and the problem and
@@ -143,8 +144,8 @@ def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = N
   """The model of a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
   `model_fields` names fields of `config.model` the user asked for; as in evaluate.py one that
-  contradicts the checkpoint is a CheckpointError, except the runtime fields (corr_chunk), which are
-  taken from `config`.
+  contradicts the checkpoint is a CheckpointError, except the runtime fields (corr_chunk,
+  infer_truncate_k), which are taken from `config`.
   """
   model, params, saved, step, refine = evaluation.load_model(checkpoint, config, model_fields)
   return Predictor(model, params, saved, refine,

@@ -38,7 +38,7 @@ from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError, NonFiniteError
 from jaxflow.losses import refinement_loss, sequence_loss
 from jaxflow.metrics import METRICS
-from jaxflow.model import build_model
+from jaxflow.model import PARAMETER_FREE_FIELDS, build_model
 
 BATCH_KEYS = ("pc1", "pc2", "flow", "mask")
 REFINE = "refine"  # top-level parameter name of the refinement module.
@@ -231,7 +231,7 @@ def _load_init_params(params, config):
       raise ConfigError("stage 2 needs config.train.init_from (the stage-1 workdir or step folder)")
     return params
   loaded_state, loaded_config, step = restore_checkpoint(config.train.init_from)
-  diffs = checkpointing.model_differences(loaded_config, config)
+  diffs = checkpointing.model_differences(loaded_config, config, ignore=PARAMETER_FREE_FIELDS)
   if diffs:
     raise CheckpointError(
       f"{config.train.init_from}: its model differs from this config's ({'; '.join(diffs)})"
@@ -239,6 +239,10 @@ def _load_init_params(params, config):
   loaded = {k: v for k, v in loaded_state.params.items() if stage == 1 or k != REFINE}
   what = "backbone" if stage == 2 else "parameters"
   print(f"stage {stage}: {what} loaded from {config.train.init_from} (step {step})", file=sys.stderr)
+  changed = checkpointing.model_differences(loaded_config, config, fields=PARAMETER_FREE_FIELDS)
+  if changed:  # e.g. more candidates for larger windows: the same parameters, run differently
+    print(f"  parameter-free fields changed (init_from != config): {'; '.join(changed)}",
+          file=sys.stderr)
   return {**params, **loaded}
 
 
@@ -337,7 +341,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
   start = ckpts.latest_step()
   if start is not None:
     saved = ckpts.restore_config(start)
-    diffs = checkpointing.model_differences(saved, config)
+    diffs = checkpointing.model_differences(saved, config, ignore=evaluation.RUNTIME_MODEL_FIELDS)
     if saved.train.stage != config.train.stage:
       diffs.append(f"train.stage: {saved.train.stage} != {config.train.stage}")
     if diffs:
@@ -358,7 +362,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
   log = MetricsLog(workdir / "metrics.jsonl", start)
   heldout, eval_log = None, None
   if config.eval.every:
-    heldout = heldout_evaluator(model, config)
+    heldout = heldout_evaluator(config)
     eval_log = MetricsLog(workdir / "eval_metrics.jsonl", start)
   pairs_per_step = config.train.batch_size
   pending = []  # (step, metrics on device) since the last fetch
@@ -442,7 +446,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
     print(f"skipped {len(loader.broken)} unreadable sample(s) in training: "
           + ", ".join(map(str, loader.broken)), file=sys.stderr)
   if config.eval.dataset:
-    results = evaluate_run(model, state.params, config, heldout)
+    results = evaluate_run(state.params, config, heldout)
     (workdir / "eval.json").write_text(json.dumps(results, indent=2) + "\n")
     print(evaluation.format_table(
       [(f"{config.eval.dataset} ({config.eval.split})", results["model"]),
@@ -452,17 +456,19 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
   return state
 
 
-def heldout_evaluator(model, config) -> evaluation.Evaluator:
-  """The model's metrics on `config.eval`'s held-out pairs, as the run's stage outputs them."""
+def heldout_evaluator(config) -> evaluation.Evaluator:
+  """The model's metrics on `config.eval`'s held-out pairs, as the run's stage outputs them (the
+  model as it evaluates: `model.infer_truncate_k`)."""
   ds = open_dataset(config.eval.dataset, split=config.eval.split)
   return evaluation.Evaluator(
-    model, ds, num_points=config.eval.num_points or None, batch_size=config.eval.batch_size,
-    num_iters=config.eval.num_iters, refine=config.train.stage == 2, seed=config.eval.seed,
+    build_model(config.model, inference=True), ds, num_points=config.eval.num_points or None,
+    batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
+    refine=config.train.stage == 2, seed=config.eval.seed,
   )
 
 
-def evaluate_run(model, params, config, evaluator=None) -> dict:
+def evaluate_run(params, config, evaluator=None) -> dict:
   """{"model": metrics, "zero_flow": metrics} on `config.eval`'s held-out pairs (`evaluator`: the
   run's `heldout_evaluator`, already compiled)."""
-  evaluator = evaluator or heldout_evaluator(model, config)
+  evaluator = evaluator or heldout_evaluator(config)
   return {"model": evaluator(params), "zero_flow": evaluator.zero_flow()}

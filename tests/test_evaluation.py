@@ -16,6 +16,7 @@ from configs import default
 from jaxflow import checkpointing, evaluation, training
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError
+from jaxflow.model import PARAMETER_FREE_FIELDS
 
 REPO = Path(__file__).absolute().parent.parent
 CACHE = os.environ.setdefault(
@@ -80,6 +81,32 @@ def test_model_results_match_a_direct_computation(workdir):
     epes.append(np.sum(err * batch["mask"][0]) / np.sum(batch["mask"][0]))
   np.testing.assert_allclose(got["epe"], np.mean(epes), rtol=1e-4)
   assert got["pairs"] == 3 and got["ms_per_pair"] > 0
+
+
+def test_infer_truncate_k_sets_the_candidates_when_evaluating_only(workdir):
+  config = default.get_config("smoke")  # truncate_k 16, infer_truncate_k 0
+  model, params, saved, _, _ = evaluation.load_model(workdir)
+  assert model.truncate_k == saved.model.truncate_k == 16
+  with config.unlocked():
+    config.model.infer_truncate_k = 4  # a runtime field: no contradiction with the checkpoint
+  fewer, _, _, _, _ = evaluation.load_model(workdir, config, ["infer_truncate_k"])
+  assert fewer.truncate_k == 4
+  assert training.build_model(config.model).truncate_k == 16  # training keeps truncate_k
+  ds = open_dataset("synthetic_lidar:2", split="test")
+  ev = lambda m: evaluation.evaluate(m, params, ds, num_points=64, batch_size=2, num_iters=2)
+  reference = saved.model.copy_and_resolve_references()
+  reference.truncate_k = 4  # the same network built with 4 candidates directly
+  assert ev(fewer)["epe"] == ev(training.build_model(reference))["epe"] != ev(model)["epe"]
+  with config.unlocked():
+    config.model.infer_truncate_k = -1
+  with pytest.raises(ValueError, match="infer_truncate_k"):
+    training.build_model(config.model, inference=True)
+  # Checkpoints written before the field existed compare as infer_truncate_k 0.
+  old = saved.copy_and_resolve_references()
+  with old.unlocked():
+    del old.model["infer_truncate_k"]
+  assert not checkpointing.model_differences(old, default.get_config("smoke"))
+  assert checkpointing.model_differences(old, config) == ["infer_truncate_k: 0 != -1"]
 
 
 def test_format_table_has_the_papers_columns():
@@ -158,13 +185,14 @@ def test_shipped_recipe_configs_build_the_shipped_model():
   if not evaluation.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")
   _, _, stored = checkpointing.open_checkpoint(evaluation.SHIPPED_CHECKPOINT)
-  for arg in shipped.ARGS:
+  for arg in shipped.ARGS:  # every round trains the same network (run with other candidates)
     config = shipped.get_config(arg)
-    assert not checkpointing.model_differences(config, stored), arg
-  # The shipped step is configs/shipped.py:stage2's run.
-  recipe = shipped.get_config("stage2")
+    assert not checkpointing.model_differences(config, stored, ignore=PARAMETER_FREE_FIELDS), arg
+  # The shipped step is configs/shipped.py's run (round 4's stage 1; its stage 2 was not shipped).
+  recipe = shipped.get_config("")
+  assert not checkpointing.model_differences(recipe, stored)
   for field in ("stage", "init_from", "num_iters", "num_steps"):
     assert stored.train[field] == recipe.train[field], field
   assert stored.data.crop_from == recipe.data.crop_from
   with pytest.raises(ValueError, match="takes one of"):
-    shipped.get_config("round4")
+    shipped.get_config("round5")

@@ -181,6 +181,11 @@ def test_stage1_init_from_warm_starts_every_parameter(stage1, tmp_path):
   assert any(not np.array_equal(after[k], before[k]) for k in before)
   with pytest.raises(CheckpointError, match="model differs"):
     training._load_init_params({}, smoke({"train.init_from": str(stage1_dir), "model.knn": 4}))
+  # Fields no parameter depends on may change between rounds (e.g. candidates for larger windows).
+  wider = smoke({"train.init_from": str(stage1_dir), "model.truncate_k": 32,
+                 "model.infer_truncate_k": 64})
+  loaded = flat(training._load_init_params({}, wider))
+  assert all(np.array_equal(loaded[k], before[k]) for k in before)
 
 
 def test_save_params_writes_a_workdir_that_loads(tmp_path):
