@@ -7,7 +7,7 @@
 #   bash scripts/train_shipped.sh round3     # round 3, which round 4 continues (needs round 2)
 #   bash scripts/train_shipped.sh round2     # round 2, which round 3 continues
 #   bash scripts/train_shipped.sh round1     # round 1, replaced, for the record
-#   bash scripts/train_shipped.sh copy       # only the copy of the final stage-2 step
+#   bash scripts/train_shipped.sh copy       # only the copy of the shipped step
 #   bash scripts/train_shipped.sh eval [DATA]  # the model card's tables (DATA: ../shared/data)
 #   POINTS=1024 bash scripts/train_shipped.sh eval [DATA]  # the same at the training density
 set -euo pipefail
