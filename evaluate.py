@@ -34,13 +34,8 @@ _RENDER = flags.DEFINE_string("render", None, "Render every pair into this folde
 def main(argv):
   if len(argv) > 1:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
-  config = _CONFIG.value
-  if flags.FLAGS["config"].present:  # an explicit config file: its whole model must match
-    model_fields = list(config.model.keys())
-  else:
-    overrides = config_flags.get_override_values(flags.FLAGS["config"])
-    model_fields = [k.split(".", 1)[1] for k in overrides if k.startswith("model.")]
-  evaluation.evaluate_checkpoint(_CHECKPOINT.value, config, _DATASET.value, _SPLIT.value,
+  model_fields = evaluation.requested_model_fields(flags.FLAGS["config"])
+  evaluation.evaluate_checkpoint(_CHECKPOINT.value, _CONFIG.value, _DATASET.value, _SPLIT.value,
                                  model_fields, _JSON.value, _RENDER.value)
 
 

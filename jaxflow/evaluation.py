@@ -31,6 +31,19 @@ SHIPPED_CHECKPOINT = Path(__file__).absolute().parent.parent / "checkpoints" / "
 RUNTIME_MODEL_FIELDS = ("corr_chunk", "infer_truncate_k")
 
 
+def requested_model_fields(config_flag) -> list[str]:
+  """The `config.model` fields a user asked for on a command line (`config_flag`: the absl flag of
+  a config file): those given as `--config.model.FIELD=...` and, with an explicit config file, every
+  field of its model except the runtime ones, which stay the checkpoint's unless given."""
+  from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
+
+  given = {k.split(".", 1)[1] for k in config_flags.get_override_values(config_flag)
+           if k.startswith("model.")}
+  if config_flag.present:
+    given |= {k for k in config_flag.value.model.keys() if k not in RUNTIME_MODEL_FIELDS}
+  return sorted(given)
+
+
 def model_predict_fn(model, num_iters: int, refine: bool):
   """jit (params, pc1, pc2) -> flow B x N x 3: the refined flow, or the last iteration's."""
 

@@ -25,7 +25,8 @@ Model. The checkpoint (default: the shipped `checkpoints/jaxflow_synthetic/` of 
 from the package, not the working directory) carries its config: the model is built from it. As in
 evaluate.py, --config only sets evaluation settings (config.eval.num_points, config.eval.num_iters);
 a model field of the given config that contradicts the checkpoint is an error, except corr_chunk and
-infer_truncate_k (the correlation candidates kept at test time). A stage-2 checkpoint gives the
+infer_truncate_k (the correlation candidates kept at test time), which stay the checkpoint's unless
+given as --config.model.FIELD=N. A stage-2 checkpoint gives the
 refined flow, a stage-1 one the last iteration's.
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
@@ -251,8 +252,7 @@ def main(argv):
   max_points, num_iters, model_fields = DEFAULT_MAX_POINTS, DEFAULT_ITERS, []
   if config is not None:
     max_points, num_iters = config.eval.num_points, config.eval.num_iters
-    if FLAGS["config"].present:  # an explicit config file: its whole model must match
-      model_fields = list(config.model.keys())
+    model_fields = evaluation.requested_model_fields(FLAGS["config"])
   if FLAGS["max-points"].value is not None:
     max_points = FLAGS["max-points"].value
   if FLAGS.iters is not None:

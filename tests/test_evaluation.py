@@ -109,6 +109,32 @@ def test_infer_truncate_k_sets_the_candidates_when_evaluating_only(workdir):
   assert checkpointing.model_differences(old, config) == ["infer_truncate_k: 0 != -1"]
 
 
+def test_cli_keeps_the_checkpoints_candidates_unless_given(workdir, tmp_path):
+  run, step_dir = copy_run(workdir, tmp_path)
+  meta = step_dir / "config" / "metadata"
+  stored = json.loads(meta.read_text())
+  stored["model"]["infer_truncate_k"] = 4  # as a checkpoint trained for 4 test-time candidates
+  meta.write_text(json.dumps(stored))
+  config = default.get_config("smoke")
+  ds = open_dataset("synthetic_lidar:2", split="test")
+  epes = {}
+  for k in (4, 16):
+    reference = config.model.copy_and_resolve_references()
+    reference.truncate_k = k
+    state, _, _ = training.restore_checkpoint(run)
+    epes[k] = evaluation.evaluate(training.build_model(reference), state.params, ds,
+                                  num_points=config.eval.num_points, batch_size=config.eval.batch_size,
+                                  num_iters=config.eval.num_iters)["epe"]
+  assert epes[4] != epes[16]
+  # An explicit config file (infer_truncate_k 0) keeps the checkpoint's 4; the command line sets 16.
+  for extra, k in (((), 4), (("--config.model.infer_truncate_k=16",), 16)):
+    out = tmp_path / f"{k}.json"
+    proc = evaluate_cli("--config", "configs/default.py:smoke", "--checkpoint", run,
+                        "--dataset", "synthetic_lidar:2", "--json", out, *extra)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert np.isclose(json.loads(out.read_text())["epe"], epes[k], rtol=1e-6), k
+
+
 def test_format_table_has_the_papers_columns():
   r = dict(epe=0.04421, acc_strict=83.8, acc_relax=95.98, outliers=26.37, angle=0.1234, pairs=3824,
            ms_per_pair=12.34)
