@@ -10,17 +10,13 @@ checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 81
 --split default to config.eval.dataset and config.eval.split.
 """
 
-import os
-
 from absl import flags
 from ml_collections import config_flags
 
 from jaxflow import cli, evaluation
 
-_REPO = os.path.dirname(os.path.abspath(__file__))
-_DEFAULT_CONFIG = os.path.join(_REPO, "configs", "default.py") + ":eval"
 _CONFIG = config_flags.DEFINE_config_file(
-  "config", _DEFAULT_CONFIG, "Evaluation settings (config.eval).", lock_config=True
+  "config", evaluation.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True
 )
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder.")
 _DATASET = flags.DEFINE_string(

@@ -12,8 +12,8 @@ order: row i is the flow of the i-th point of PC1 that read_points keeps. read_p
 a non-finite coordinate; when it does, the count is printed on stderr and those rows have no output
 row (the output aligns with the finite rows of PC1, in their order).
 
-Cloud size. A cloud with at most `max_points` points (default 8192, the paper's test size; with
---config, its config.eval.num_points, 0 meaning whole clouds; --max-points overrides both) is used
+Cloud size. A cloud with at most `max_points` points (config.eval.num_points: 8192, the paper's test
+size, in the default configs/default.py:eval; 0 means whole clouds; --max-points overrides it) is used
 whole, without resampling. A larger one is sampled to `max_points` points without replacement,
 seeded (`--seed`, default 0: the same call gives the same flow); pc1 and pc2 are sampled independently.
 The flow is then mapped back to EVERY point of PC1: an unsampled pc1 point takes the flow of its
@@ -23,10 +23,11 @@ memory stays linear in the number of points (time grows as N x M).
 
 Model. The checkpoint (default: the shipped `checkpoints/jaxflow_synthetic/` of this repository, found
 from the package, not the working directory) carries its config: the model is built from it. As in
-evaluate.py, --config only sets evaluation settings (config.eval.num_points, config.eval.num_iters);
-a model field of the given config that contradicts the checkpoint is an error, except corr_chunk and
-infer_truncate_k (the correlation candidates kept at test time), which stay the checkpoint's unless
-given as --config.model.FIELD=N. A stage-2 checkpoint gives the
+evaluate.py, --config (default configs/default.py:eval) only sets evaluation settings
+(config.eval.num_points, config.eval.num_iters: 32); a model field of an explicit --config file that
+contradicts the checkpoint is an error, except corr_chunk and infer_truncate_k (the correlation
+candidates kept at test time), which stay the checkpoint's unless given as --config.model.FIELD=N
+(e.g. --config.model.infer_truncate_k=64: less memory with --full). A stage-2 checkpoint gives the
 refined flow, a stage-1 one the last iteration's.
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
@@ -215,16 +216,15 @@ def _define_flags():
   from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
 
   config_flags.DEFINE_config_file(
-    "config", None, "Evaluation settings (config.eval.num_points, config.eval.num_iters); the model "
-    "comes from the checkpoint.", lock_config=True)
+    "config", evaluation.EVAL_CONFIG, "Evaluation settings (config.eval.num_points, "
+    "config.eval.num_iters); the model comes from the checkpoint.", lock_config=True)
   flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "
                       "shipped checkpoints/jaxflow_synthetic/).")
   flags.DEFINE_string("out", None, "Write the flow here (.npy, float32, one row per point of PC1).")
-  flags.DEFINE_integer("iters", None, f"Flow iterations (default {DEFAULT_ITERS}, or "
-                       "config.eval.num_iters with --config).")
-  flags.DEFINE_integer("max-points", None, f"Clouds above this size are sampled to it and the flow is "
-                       f"mapped back to every PC1 point by nearest sampled neighbour (default "
-                       f"{DEFAULT_MAX_POINTS}, or config.eval.num_points with --config; 0: whole clouds).")
+  flags.DEFINE_integer("iters", None, "Flow iterations (default: config.eval.num_iters, 32).")
+  flags.DEFINE_integer("max-points", None, "Clouds above this size are sampled to it and the flow is "
+                       "mapped back to every PC1 point by nearest sampled neighbour (default: "
+                       "config.eval.num_points, 8192; 0: whole clouds).")
   flags.DEFINE_bool("full", False, "Run on the whole clouds, the correlation and kNN built in chunks "
                     "of --corr-chunk rows (memory linear in the points).")
   flags.DEFINE_integer("corr-chunk", DEFAULT_CORR_CHUNK, "Rows per chunk with --full.")
@@ -249,10 +249,8 @@ def main(argv):
              f"{' '.join(argv[1:]) or '(none)'}")
   pc1_path, pc2_path = argv[1:]
   config = FLAGS.config
-  max_points, num_iters, model_fields = DEFAULT_MAX_POINTS, DEFAULT_ITERS, []
-  if config is not None:
-    max_points, num_iters = config.eval.num_points, config.eval.num_iters
-    model_fields = evaluation.requested_model_fields(FLAGS["config"])
+  max_points, num_iters = config.eval.num_points, config.eval.num_iters
+  model_fields = evaluation.requested_model_fields(FLAGS["config"])
   if FLAGS["max-points"].value is not None:
     max_points = FLAGS["max-points"].value
   if FLAGS.iters is not None:

@@ -93,6 +93,8 @@ def runs(files, workdir):
     "ply": _cli(d / "pc1.ply", d / "pc2.ply", "--out", d / "flow_ply.npy", *ck, "--iters", 4),
     "nan": _cli(d / "nan.npy", d / "pc2.npy", "--out", d / "flow_nan.npy", *ck, "--iters", 4,
                 "--max-points", 100),
+    "candidates": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_k4.npy", *ck, "--iters", 4,
+                       "--config.model.infer_truncate_k=4"),  # without a --config file
     "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *ck,
                          "--config", os.path.join(ROOT, "configs", "default.py") + ":smoke"),
   }
@@ -140,6 +142,17 @@ def test_round_trip_npy_and_ply(runs, files, predictor, pair):
   np.testing.assert_allclose(api, flow_npy, atol=1e-4)
   png = (files / "view.png").read_bytes()
   assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 1000
+
+
+def test_cli_sets_the_test_time_candidates(runs, files, predictor, pair):
+  rc, _, stderr = runs["candidates"]
+  assert rc == 0, stderr
+  config = predictor.config.copy_and_resolve_references()
+  config.model.truncate_k = 4  # the smoke checkpoint keeps 16; a model built with 4 directly
+  four = predict.Predictor(build_model(config.model), predictor.params, config, refine=True)
+  flow = np.load(files / "flow_k4.npy")
+  np.testing.assert_allclose(flow, four(pair[0], pair[1], num_iters=4), atol=1e-4)
+  assert not np.allclose(flow, np.load(files / "flow_npy.npy"), atol=1e-3)
 
 
 def test_larger_cloud_gives_one_row_per_input_point(runs, files):

@@ -116,6 +116,21 @@ def test_heldout_evaluation_during_training_matches_evaluating_the_checkpoint(st
   assert final["epe"] == records[-1]["epe"] and final["output"] == "coarse"
 
 
+def test_heldout_evaluation_keeps_the_test_time_candidates(stage1):
+  # The run's held-out check evaluates as evaluate.py does: with model.infer_truncate_k candidates.
+  _, state = stage1
+  config = smoke({"model.infer_truncate_k": 4})  # the smoke model trains with 16
+  ds = open_dataset(config.eval.dataset, split=config.eval.split)
+  settings = dict(num_points=config.eval.num_points, batch_size=config.eval.batch_size,
+                  num_iters=config.eval.num_iters)
+  heldout = training.evaluate_run(state.params, config)["model"]
+  four, sixteen = (evaluation.evaluate(build_model(smoke({"model.truncate_k": k}).model),
+                                       state.params, ds, **settings) for k in (4, 16))
+  assert four["epe"] != sixteen["epe"]
+  for k in ("epe", "acc_strict", "acc_relax", "outliers", "angle"):
+    assert np.isclose(heldout[k], four[k], rtol=1e-5, atol=1e-7), k
+
+
 def test_evaluator_reuses_results_only_for_the_same_parameter_arrays(stage1):
   workdir, state = stage1
   config = smoke()
