@@ -34,11 +34,14 @@ def truncated_correlation(f1_BxNxC, f2_BxMxC, xyz2_BxMx3, k: int, chunk: int = 0
   return geometry.map_row_chunks(select, (f1_BxNxC,), chunk)
 
 
-def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3):
+def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3,
+                one_cell_at_a_time: bool | None = None):
   """Mean correlation of the candidates in each of the resolution^3 cells around the estimate.
 
   offset = candidate xyz - estimate. cell = round(offset / scale); a candidate is inside when
   every |cell| <= resolution // 2; cells are numbered (dx * R + dy) * R + dz with d = cell + R // 2.
+  `one_cell_at_a_time` (None: on the CPU backend only) loops over the cells instead of comparing
+  against all of them at once: the same sums, with B x N x K temporaries instead of B x N x K x R^3.
   """
   half = resolution // 2
   cell_BxNxKx3 = jnp.round(jax.lax.stop_gradient(offset_BxNxKx3) / scale)
@@ -46,10 +49,21 @@ def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3):
   d = (cell_BxNxKx3 + half).astype(jnp.int32)
   index_BxNxK = (d[..., 0] * resolution + d[..., 1]) * resolution + d[..., 2]
   index_BxNxK = jnp.where(inside_BxNxK, index_BxNxK, -1)
-  # A compare-and-reduce per cell, which XLA fuses without materialising a one-hot B x N x K x R^3.
-  member_BxNxKxR = index_BxNxK[..., None] == jnp.arange(resolution**3)
-  sums_BxNxR = jnp.sum(jnp.where(member_BxNxKxR, corr_BxNxK[..., None], 0.0), axis=2)
-  counts_BxNxR = jnp.sum(member_BxNxKxR, axis=2).astype(corr_BxNxK.dtype)
+  if one_cell_at_a_time is None:
+    # XLA's CPU backend materialises the all-cells comparison: 2.7 GB of temporaries for one
+    # 8192-point pair with 512 candidates, 0.8 GB one cell at a time (benchmarks/MODEL.md).
+    one_cell_at_a_time = jax.default_backend() == "cpu"
+  if one_cell_at_a_time:
+    def cell_sums(r):
+      member_BxNxK = index_BxNxK == r
+      return (jnp.sum(jnp.where(member_BxNxK, corr_BxNxK, 0.0), axis=2),
+              jnp.sum(member_BxNxK, axis=2).astype(corr_BxNxK.dtype))
+    sums_RxBxN, counts_RxBxN = jax.lax.map(cell_sums, jnp.arange(resolution**3))
+    sums_BxNxR, counts_BxNxR = jnp.moveaxis(sums_RxBxN, 0, -1), jnp.moveaxis(counts_RxBxN, 0, -1)
+  else:
+    member_BxNxKxR = index_BxNxK[..., None] == jnp.arange(resolution**3)
+    sums_BxNxR = jnp.sum(jnp.where(member_BxNxKxR, corr_BxNxK[..., None], 0.0), axis=2)
+    counts_BxNxR = jnp.sum(member_BxNxKxR, axis=2).astype(corr_BxNxK.dtype)
   return sums_BxNxR / jnp.maximum(counts_BxNxR, 1.0)
 
 

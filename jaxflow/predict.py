@@ -27,7 +27,7 @@ evaluate.py, --config (default configs/default.py:eval) only sets evaluation set
 (config.eval.num_points, config.eval.num_iters: 32); a model field of an explicit --config file that
 contradicts the checkpoint is an error, except corr_chunk and infer_truncate_k (the correlation
 candidates kept at test time), which stay the checkpoint's unless given as --config.model.FIELD=N
-(e.g. --config.model.infer_truncate_k=64: less memory with --full). A stage-2 checkpoint gives the
+(e.g. --config.model.infer_truncate_k=64: faster with --full). A stage-2 checkpoint gives the
 refined flow, a stage-1 one the last iteration's.
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points

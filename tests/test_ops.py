@@ -87,12 +87,18 @@ def correlation_inputs(seed, n=30, k=40):
 
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("scale", [0.25, 0.5, 1.0])
-def test_voxel_cells_match_loop(seed, scale):
+@pytest.mark.parametrize("one_cell_at_a_time", [False, True])  # other backends / the CPU's
+def test_voxel_cells_match_loop(seed, scale, one_cell_at_a_time):
   corr, cand, coords = correlation_inputs(seed)
-  got = voxel_means(jnp.asarray(corr)[None], jnp.asarray(cand - coords[:, None])[None], scale)
+  offset = jnp.asarray(cand - coords[:, None])[None]
+  got = voxel_means(jnp.asarray(corr)[None], offset, scale, one_cell_at_a_time=one_cell_at_a_time)
   want = ref.voxel_cells(corr, cand, coords, scale)
   close(got[0], want)
   assert np.any(want == 0) and np.any(want != 0)  # both empty and filled cells were exercised
+  # Both forms give the same gradient with respect to the correlations.
+  def loss(c, flag):
+    return jnp.sum(voxel_means(c, offset, scale, one_cell_at_a_time=flag) ** 2)
+  close(jax.grad(loss)(jnp.asarray(corr)[None], True), jax.grad(loss)(jnp.asarray(corr)[None], False))
 
 
 def test_voxel_cells_validity_cube_and_empty():

@@ -1,0 +1,76 @@
+"""The voxel branch's two forms (jaxflow.correlation.voxel_means) in the whole model, one process.
+
+    python -m benchmarks.voxel_cells --points 8192 --candidates 512 --iters 32
+
+"all cells" compares every candidate with the 27 cells at once (the default off the CPU); "one cell
+at a time" loops over the cells (the CPU's default). For each: the compiled program's temporary
+memory (XLA's memory_analysis, the same on every run), the median wall time after compilation,
+and the same for a training step (batch 2, 8 iterations, sequence loss) with --train.
+"""
+
+import argparse
+import functools
+import platform
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from benchmarks.model_speed import CONFIGS, timed
+from jaxflow import correlation, losses
+from jaxflow.model import build_model
+
+FORMS = {"all cells": False, "one cell at a time": True}
+
+
+def temp_mib(jitted, *args):
+  return jitted.lower(*args).compile().memory_analysis().temp_size_in_bytes / 2**20
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--config", default="default_cpu", choices=sorted(CONFIGS))
+  parser.add_argument("--points", type=int, default=8192)
+  parser.add_argument("--candidates", type=int, default=512, help="model.truncate_k")
+  parser.add_argument("--iters", type=int, default=32)
+  parser.add_argument("--repeats", type=int, default=2)
+  parser.add_argument("--train", action="store_true")
+  args = parser.parse_args()
+
+  dev = jax.devices()[0]
+  print(f"device: {dev.device_kind} ({dev.platform}), jax {jax.__version__}, "
+        f"host {platform.processor() or platform.machine()}")
+  cfg = CONFIGS[args.config]()
+  cfg.truncate_k = args.candidates
+  model = build_model(cfg)
+  rng = np.random.default_rng(0)
+  pc1 = jnp.asarray(rng.uniform(-10, 10, (1, args.points, 3)), jnp.float32)
+  pc2 = pc1 + 0.1
+  variables = jax.jit(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, num_iters=1))(pc1, pc2)
+  b1 = jnp.concatenate([pc1, pc1 + 1.0])
+  gt = jnp.full(b1.shape, 0.1)
+  original = correlation.voxel_means
+  print(f"{args.config}, {args.points} points, {args.candidates} candidates")
+  try:
+    for name, flag in FORMS.items():
+      # The model calls correlation.voxel_means by name: pin the form for this trace.
+      correlation.voxel_means = functools.partial(original, one_cell_at_a_time=flag)
+      forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters)["flows"])
+      mem, t = temp_mib(forward, variables, pc1, pc2), timed(forward, variables, pc1, pc2,
+                                                             repeats=args.repeats)
+      line = f"{name:>18}: inference ({args.iters} iters) {mem:7.0f} MiB temp, {t:7.2f} s"
+      if args.train:
+        def loss(p):
+          flows = model.apply({"params": p}, b1, b1 + 0.1, num_iters=8, refine=False)["flows"]
+          return losses.sequence_loss(flows, gt)
+        grad = jax.jit(jax.grad(loss))
+        mem, t = temp_mib(grad, variables["params"]), timed(grad, variables["params"],
+                                                           repeats=args.repeats)
+        line += f" | training step (batch 2, 8 iters) {mem:7.0f} MiB temp, {t:7.2f} s"
+      print(line, flush=True)
+  finally:
+    correlation.voxel_means = original
+
+
+if __name__ == "__main__":
+  main()
