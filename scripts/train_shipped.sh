@@ -3,7 +3,8 @@
 # Each round is the exact command that was run; rerunning a train.py line on the same workdir resumes
 # from its newest checkpoint (a later round may raise --config.train.num_steps). See MODEL_CARD.md.
 #
-#   bash scripts/train_shipped.sh            # round 4 (the shipped one; needs round 3), then the copy
+#   bash scripts/train_shipped.sh            # round 5 (the shipped one; needs round 4), then the copy
+#   bash scripts/train_shipped.sh round4     # round 4, which round 5 continues (needs round 3)
 #   bash scripts/train_shipped.sh round3     # round 3, which round 4 continues (needs round 2)
 #   bash scripts/train_shipped.sh round2     # round 2, which round 3 continues
 #   bash scripts/train_shipped.sh round1     # round 1, replaced, for the record
@@ -74,23 +75,30 @@ if [[ "${1:-}" == "round3" ]]; then
   exit 0
 fi
 
-if [[ "${1:-}" != "copy" ]]; then
+if [[ "${1:-}" == "round4" ]]; then
   # Round 4: round 3's stage 1 continued on 2048-point windows with 128 candidates, then stage 2.
   [[ -d runs/shipped_r3/checkpoints ]] || bash "$0" round3
-  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r4
+  $NICE python train.py --config configs/shipped.py:round4 --workdir runs/shipped_r4
   # Stage 2 (the graph refinement on the frozen stage-1 network): trained and measured, not shipped,
   # as its 750 steps left the held-out EPE worse than the stage-1 flow (MODEL_CARD.md). It ran as
   # 150 steps (--config.train.num_steps=150), then this line resumed it.
-  $NICE python train.py --config configs/shipped.py:stage2 --workdir runs/shipped_r4_stage2
+  $NICE python train.py --config configs/shipped.py:round4_stage2 --workdir runs/shipped_r4_stage2
   # The stage-1 flow on the same validation pairs, for the comparison.
   mkdir -p runs/r4_val
   $NICE python evaluate.py --checkpoint runs/shipped_r4 --dataset synthetic_mix:16 --split val \
     --config.eval.batch_size=2 --json runs/r4_val/coarse_mix16_val.json
+  exit 0
 fi
 
-# Ship the final step of round 4's stage 1 (parameters, config and optimiser state; its refinement
+if [[ "${1:-}" != "copy" ]]; then
+  # Round 5: round 4's stage 1 continued (same recipe, new data seed, rate 3e-4 decayed to 0).
+  [[ -d runs/shipped_r4/checkpoints ]] || bash "$0" round4
+  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r5
+fi
+
+# Ship the final step of round 5's stage 1 (parameters, config and optimiser state; its refinement
 # parameters are untrained and unused: a stage-1 checkpoint gives the coarse flow).
-SHIP=runs/shipped_r4
+SHIP=runs/shipped_r5
 STEP=$(ls $SHIP/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
 DEST=checkpoints/jaxflow_synthetic
 mkdir -p "$DEST"
@@ -100,7 +108,7 @@ cp $SHIP/config.json "$DEST/config.json"
 # One learning curve for the rounds: each run's steps (training and held-out metrics) are counted on
 # from where the previous run ended; the end-of-run evaluation is the last run's.
 python - "$DEST/learning_curve.png" runs/shipped_r2_warmup runs/shipped_r2 runs/shipped_r3 \
-  runs/shipped_r4 <<'PY'
+  runs/shipped_r4 runs/shipped_r5 <<'PY'
 import json, pathlib, shutil, sys
 from jaxflow import viz
 joined = pathlib.Path("runs/shipped_rounds")
