@@ -11,6 +11,7 @@
 #   bash scripts/train_shipped.sh copy       # only the copy of the shipped step
 #   bash scripts/train_shipped.sh eval [DATA]  # the model card's tables (DATA: ../shared/data)
 #   POINTS=1024 bash scripts/train_shipped.sh eval [DATA]  # the same at the training density
+#   CHECKPOINT=runs/X EVAL_OUT=runs/X_eval bash scripts/train_shipped.sh eval  # another checkpoint
 set -euo pipefail
 cd "$(dirname "$0")/.."
 NICE="nice -n 10"  # the dev box's 2 cores are shared
@@ -20,9 +21,10 @@ if [[ "${1:-}" == "eval" ]]; then
   # flow on the same sampled pairs; JSON per set in runs/shipped_eval/, views of the real pairs.
   DATA=${2:-../shared/data}
   POINTS=${POINTS:-8192}
-  OUT=runs/shipped_eval$([[ $POINTS == 8192 ]] || echo "_$POINTS")
+  OUT=${EVAL_OUT:-runs/shipped_eval$([[ $POINTS == 8192 ]] || echo "_$POINTS")}
   mkdir -p "$OUT"
   SETTINGS="--config.eval.num_points=$POINTS --config.eval.num_iters=32 --config.eval.batch_size=1"
+  [[ -n "${CHECKPOINT:-}" ]] && SETTINGS+=" --checkpoint $CHECKPOINT"
   SETS=("things synthetic_things:50 test" "lidar synthetic_lidar:50 test")
   [[ -d "$DATA/FlyingThings3D_subset_processed_35m" ]] && \
     SETS+=("ft3d ft3d:$DATA/FlyingThings3D_subset_processed_35m train")

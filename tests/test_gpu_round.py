@@ -1,0 +1,54 @@
+"""scripts/gpu_round.sh on the CPU at toy sizes: a round cut by time saves its step and packs it,
+and a fresh machine (no workdir) resumes from the carried pack."""
+
+import json
+import os
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+
+from jaxflow import evaluation
+
+REPO = Path(__file__).absolute().parent.parent
+TOY = ["--config.data.num_points=64", "--config.model.truncate_k=16", "--config.train.num_iters=2"]
+
+
+def gpu_round(tmp_path, *args):
+  env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHON=sys.executable, OUT=str(tmp_path / "out"),
+             WORK=str(tmp_path / "work"), CARRY=str(tmp_path / "carry.tgz"))
+  return subprocess.run(["bash", "scripts/gpu_round.sh", *args], cwd=REPO, env=env,
+                        capture_output=True, text=True, timeout=300)
+
+
+def packed_steps(tgz):
+  with tarfile.open(tgz) as tar:
+    parts = [Path(name).parts for name in tar.getnames()]  # "./checkpoints/STEP/..." normalised
+  return sorted({int(p[1]) for p in parts if len(p) > 1 and p[0] == "checkpoints"})
+
+
+def test_time_cut_round_packs_and_resumes_from_the_pack(tmp_path):
+  if not evaluation.SHIPPED_CHECKPOINT.exists():
+    pytest.skip("no shipped checkpoint to continue")
+  # Cut by time (the config's num_steps is never reached): SIGTERM, the step saved, packed.
+  proc = gpu_round(tmp_path, "train", "0.4", *TOY)
+  assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+  assert "stopped by SIGTERM" in proc.stdout
+  (first,) = packed_steps(tmp_path / "out" / "gpu_round.tgz")
+  assert first > 0
+  # A fresh machine: no workdir, the pack carried in; it resumes there and runs to num_steps.
+  (tmp_path / "out" / "gpu_round.tgz").rename(tmp_path / "carry.tgz")
+  proc = gpu_round(tmp_path, "train", "5", *TOY, f"--config.train.num_steps={first + 2}")
+  assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+  assert f"checkpoints/{first}" in proc.stdout  # "resuming from .../checkpoints/FIRST"
+  assert packed_steps(tmp_path / "out" / "gpu_round.tgz") == [first + 2]
+  metrics = (tmp_path / "work" / "metrics.jsonl").read_text().splitlines()
+  steps = [json.loads(line)["step"] for line in metrics]
+  assert steps[-1] == first + 2 and steps == sorted(steps)
+
+
+def test_usage_error(tmp_path):
+  proc = gpu_round(tmp_path, "nonsense")
+  assert proc.returncode == 2 and "usage:" in proc.stderr
