@@ -2,11 +2,13 @@ r"""The shipped checkpoint `checkpoints/jaxflow_synthetic/`: configs/default.py'
 trained on synthetic_mix (FlyingThings-like and LiDAR-like pairs alternating), in rounds that each
 continue from the previous one.
 
-Round 5 (shipped): round 4's stage 1 continued with the same recipe (2048-point windows, 128
-correlation candidates, 16 iterations), a new data seed and a lower rate; it evaluates and predicts
-with 512 candidates (model.infer_truncate_k). No stage 2 (round 4's did not beat its stage 1).
+Round 6 (""): round 5's stage 1 continued with the same recipe (2048-point windows, 128
+correlation candidates, 16 iterations), a new data seed; it evaluates and predicts with 512
+candidates (model.infer_truncate_k). No stage 2 (round 4's did not beat its stage 1).
 
-    python train.py --config configs/shipped.py --workdir runs/shipped_r5
+    python train.py --config configs/shipped.py --workdir runs/shipped_r6
+
+Round 5 (`round5`): the same recipe continued from round 4's stage 1.
 
 Round 4 (`round4`, `round4_stage2`): round 3's stage 1 continued on 2048-point windows with 128
 candidates, then a stage 2 (750 steps) that left the held-out EPE worse than the stage-1 flow.
@@ -21,8 +23,8 @@ checkpoints/jaxflow_synthetic/MODEL_CARD.md says what each round gave.
 
 from configs import default
 
-ARGS = ("", "round4", "round4_stage2", "round3", "round3_stage2", "round2_warmup", "round2",
-        "round2_stage2", "round1", "round1_stage2")
+ARGS = ("", "round5", "round4", "round4_stage2", "round3", "round3_stage2", "round2_warmup",
+        "round2", "round2_stage2", "round1", "round1_stage2")
 
 
 def small_model_config():
@@ -51,8 +53,19 @@ def get_config(arg: str = ""):
     return _round3(arg)
   if arg.startswith("round4"):
     return _round4(arg)
-  # Round 5: round 4's stage 1 continued with the same recipe, a new data seed and a lower rate;
-  # its end-of-run check is on the validation pairs that decided it replaces round 4 (the card).
+  if arg == "round5":
+    return _round5()
+  # Round 6: round 5 continued with its recipe, a new data seed and 1000 steps (a session's hour).
+  config = _round5()
+  config.seed = 6
+  config.train.init_from = "runs/shipped_r5"
+  config.train.num_steps = 1000
+  return config
+
+
+def _round5():
+  """Round 5 as it ran: round 4's stage 1 continued with its recipe, a new seed, a lower rate."""
+  # The end-of-run check is on the validation pairs that decide whether a round is shipped (the card).
   config = _round4("round4")
   config.seed = 5
   config.train.init_from = "runs/shipped_r4"

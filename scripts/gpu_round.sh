@@ -48,6 +48,10 @@ case "${1:-}" in
     timeout -s TERM "${minutes}m" "$PY" train.py --config configs/gpu_round.py --workdir "$WORK" \
       "$@" 2>&1 | tee "$OUT/train.log" || rc=$?
     [[ $rc == 0 || $rc == 124 ]] || { echo "train.py failed (exit $rc)" >&2; exit "$rc"; }
+    if ! ls "$WORK/checkpoints" 2>/dev/null | grep -qE '^[0-9]+$'; then
+      echo "no checkpoint in $WORK: stopped before training began; give more than $minutes minutes" >&2
+      exit 1
+    fi
     tar -czf "$OUT/gpu_round.tgz" -C "$WORK" .
     tail -n 3 "$WORK/metrics.jsonl"
     ;;

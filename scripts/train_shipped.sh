@@ -3,7 +3,8 @@
 # Each round is the exact command that was run; rerunning a train.py line on the same workdir resumes
 # from its newest checkpoint (a later round may raise --config.train.num_steps). See MODEL_CARD.md.
 #
-#   bash scripts/train_shipped.sh            # round 5 (the shipped one; needs round 4), then the copy
+#   bash scripts/train_shipped.sh            # round 6 (the shipped one; needs round 5), then the copy
+#   bash scripts/train_shipped.sh round5     # round 5, which round 6 continues (needs round 4)
 #   bash scripts/train_shipped.sh round4     # round 4, which round 5 continues (needs round 3)
 #   bash scripts/train_shipped.sh round3     # round 3, which round 4 continues (needs round 2)
 #   bash scripts/train_shipped.sh round2     # round 2, which round 3 continues
@@ -92,15 +93,22 @@ if [[ "${1:-}" == "round4" ]]; then
   exit 0
 fi
 
-if [[ "${1:-}" != "copy" ]]; then
+if [[ "${1:-}" == "round5" ]]; then
   # Round 5: round 4's stage 1 continued (same recipe, new data seed, rate 3e-4 decayed to 0).
   [[ -d runs/shipped_r4/checkpoints ]] || bash "$0" round4
-  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r5
+  $NICE python train.py --config configs/shipped.py:round5 --workdir runs/shipped_r5
+  exit 0
 fi
 
-# Ship the final step of round 5's stage 1 (parameters, config and optimiser state; its refinement
+if [[ "${1:-}" != "copy" ]]; then
+  # Round 6: round 5's stage 1 continued (same recipe, new data seed, 1000 steps).
+  [[ -d runs/shipped_r5/checkpoints ]] || bash "$0" round5
+  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r6
+fi
+
+# Ship the final step of round 6's stage 1 (parameters, config and optimiser state; its refinement
 # parameters are untrained and unused: a stage-1 checkpoint gives the coarse flow).
-SHIP=runs/shipped_r5
+SHIP=runs/shipped_r6
 STEP=$(ls $SHIP/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
 DEST=checkpoints/jaxflow_synthetic
 mkdir -p "$DEST"
@@ -110,7 +118,7 @@ cp $SHIP/config.json "$DEST/config.json"
 # One learning curve for the rounds: each run's steps (training and held-out metrics) are counted on
 # from where the previous run ended; the end-of-run evaluation is the last run's.
 python - "$DEST/learning_curve.png" runs/shipped_r2_warmup runs/shipped_r2 runs/shipped_r3 \
-  runs/shipped_r4 runs/shipped_r5 <<'PY'
+  runs/shipped_r4 runs/shipped_r5 runs/shipped_r6 <<'PY'
 import json, pathlib, shutil, sys
 from jaxflow import viz
 joined = pathlib.Path("runs/shipped_rounds")

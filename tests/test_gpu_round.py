@@ -33,7 +33,7 @@ def test_time_cut_round_packs_and_resumes_from_the_pack(tmp_path):
   if not evaluation.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint to continue")
   # Cut by time (the config's num_steps is never reached): SIGTERM, the step saved, packed.
-  proc = gpu_round(tmp_path, "train", "0.4", *TOY)
+  proc = gpu_round(tmp_path, "train", "0.75", *TOY)
   assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
   assert "stopped by SIGTERM" in proc.stdout
   (first,) = packed_steps(tmp_path / "out" / "gpu_round.tgz")
