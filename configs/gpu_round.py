@@ -18,7 +18,6 @@ def get_config():
   config.data.num_points = 8192
   config.data.crop_from = 0
   config.model.truncate_k = 512  # 1/16 of the cloud, as in every CPU round and the paper
-  config.model.infer_truncate_k = 0
   config.train.num_iters = 16
   config.train.lr = 3e-4
   config.train.schedule = "constant"
