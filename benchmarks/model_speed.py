@@ -36,6 +36,12 @@ def timed(fn, *args, repeats):
   return float(np.median(times))
 
 
+def device_line():
+  dev = jax.devices()[0]
+  return (f"device: {dev.device_kind} ({dev.platform}), jax {jax.__version__}, "
+          f"host {platform.processor() or platform.machine()}")
+
+
 def peak_memory_gib():
   stats = jax.devices()[0].memory_stats() or {}
   peak = stats.get("peak_bytes_in_use")
@@ -52,9 +58,7 @@ def main():
   parser.add_argument("--corr-chunk", type=int, default=0)
   args = parser.parse_args()
 
-  dev = jax.devices()[0]
-  print(f"device: {dev.device_kind} ({dev.platform}), jax {jax.__version__}, "
-        f"host {platform.processor() or platform.machine()}")
+  print(device_line())
   rng = np.random.default_rng(0)
   for name in args.configs.split(","):
     cfg = CONFIGS[name]()

@@ -10,13 +10,12 @@ and the same for a training step (batch 2, 8 iterations, sequence loss) with --t
 
 import argparse
 import functools
-import platform
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.model_speed import CONFIGS, timed
+from benchmarks.model_speed import CONFIGS, device_line, timed
 from jaxflow import correlation, losses
 from jaxflow.model import build_model
 
@@ -37,9 +36,7 @@ def main():
   parser.add_argument("--train", action="store_true")
   args = parser.parse_args()
 
-  dev = jax.devices()[0]
-  print(f"device: {dev.device_kind} ({dev.platform}), jax {jax.__version__}, "
-        f"host {platform.processor() or platform.machine()}")
+  print(device_line())
   cfg = CONFIGS[args.config]()
   cfg.truncate_k = args.candidates
   model = build_model(cfg)

@@ -9,6 +9,8 @@ feature correlations with pc2 and the xyz of those candidates. At every iteratio
 Candidate selection and cell membership carry no gradient; correlation values do.
 """
 
+import functools
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -48,23 +50,56 @@ def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3,
   inside_BxNxK = jnp.all(jnp.abs(cell_BxNxKx3) <= half, axis=-1)
   d = (cell_BxNxKx3 + half).astype(jnp.int32)
   index_BxNxK = (d[..., 0] * resolution + d[..., 1]) * resolution + d[..., 2]
-  index_BxNxK = jnp.where(inside_BxNxK, index_BxNxK, -1)
+  # The index is what the gradient keeps of every iteration: int8 where the cells fit.
+  index_BxNxK = jnp.where(inside_BxNxK, index_BxNxK, -1).astype(
+    jnp.int8 if resolution**3 < 128 else jnp.int32)
   if one_cell_at_a_time is None:
     # XLA's CPU backend materialises the all-cells comparison: 2.7 GB of temporaries for one
     # 8192-point pair with 512 candidates, 0.8 GB one cell at a time (benchmarks/MODEL.md).
     one_cell_at_a_time = jax.default_backend() == "cpu"
+  return cell_means(corr_BxNxK, index_BxNxK, resolution**3, one_cell_at_a_time)
+
+
+def _cell_sums(corr_BxNxK, index_BxNxK, cells: int, one_cell_at_a_time: bool):
+  """Sums and counts B x N x cells of the values in each cell."""
   if one_cell_at_a_time:
-    def cell_sums(r):
+    def sums_of(r):
       member_BxNxK = index_BxNxK == r
       return (jnp.sum(jnp.where(member_BxNxK, corr_BxNxK, 0.0), axis=2),
               jnp.sum(member_BxNxK, axis=2).astype(corr_BxNxK.dtype))
-    sums_RxBxN, counts_RxBxN = jax.lax.map(cell_sums, jnp.arange(resolution**3))
-    sums_BxNxR, counts_BxNxR = jnp.moveaxis(sums_RxBxN, 0, -1), jnp.moveaxis(counts_RxBxN, 0, -1)
-  else:
-    member_BxNxKxR = index_BxNxK[..., None] == jnp.arange(resolution**3)
-    sums_BxNxR = jnp.sum(jnp.where(member_BxNxKxR, corr_BxNxK[..., None], 0.0), axis=2)
-    counts_BxNxR = jnp.sum(member_BxNxKxR, axis=2).astype(corr_BxNxK.dtype)
+    sums_RxBxN, counts_RxBxN = jax.lax.map(sums_of, jnp.arange(cells, dtype=index_BxNxK.dtype))
+    return jnp.moveaxis(sums_RxBxN, 0, -1), jnp.moveaxis(counts_RxBxN, 0, -1)
+  member_BxNxKxR = index_BxNxK[..., None] == jnp.arange(cells, dtype=index_BxNxK.dtype)
+  sums_BxNxR = jnp.sum(jnp.where(member_BxNxKxR, corr_BxNxK[..., None], 0.0), axis=2)
+  return sums_BxNxR, jnp.sum(member_BxNxKxR, axis=2).astype(corr_BxNxK.dtype)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def cell_means(corr_BxNxK, index_BxNxK, cells: int, one_cell_at_a_time: bool):
+  """Mean of the values in each cell (0 when empty): B x N x cells; index -1 is in no cell.
+
+  The gradient of a candidate's value is its cell's cotangent / count, so it keeps only the index
+  and the counts; autodiff of the sums would keep the B x N x K x cells memberships of every
+  iteration.
+  """
+  sums_BxNxR, counts_BxNxR = _cell_sums(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time)
   return sums_BxNxR / jnp.maximum(counts_BxNxR, 1.0)
+
+
+def _cell_means_fwd(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time):
+  sums_BxNxR, counts_BxNxR = _cell_sums(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time)
+  return sums_BxNxR / jnp.maximum(counts_BxNxR, 1.0), (index_BxNxK, counts_BxNxR)
+
+
+def _cell_means_bwd(cells, one_cell_at_a_time, residuals, g_BxNxR):
+  index_BxNxK, counts_BxNxR = residuals
+  per_value_BxNxR = g_BxNxR / jnp.maximum(counts_BxNxR, 1.0)
+  g_BxNxK = jnp.take_along_axis(per_value_BxNxR, jnp.maximum(index_BxNxK, 0).astype(jnp.int32),
+                                axis=2)
+  return jnp.where(index_BxNxK >= 0, g_BxNxK, 0.0), None
+
+
+cell_means.defvjp(_cell_means_fwd, _cell_means_bwd)
 
 
 class PointVoxelCorrelation(nn.Module):

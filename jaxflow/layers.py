@@ -49,6 +49,54 @@ def _uniform_pm1(key, shape, dtype=jnp.float32):
   return jax.random.uniform(key, shape, dtype, -1.0, 1.0)
 
 
+def _similarity(support, cos, similarity: str):
+  return support + cos if similarity == "sum" else nn.relu(cos) * support
+
+
+def edge_similarity(support_BxMxLC, unit_v_BxNxKx3, unit_e_3xLC, nbr_BxNxK, similarity):
+  """sim(j, l) of every neighbour j, per point and channel: B x N x K x LC."""
+  cos_BxNxKxLC = jnp.einsum("bnkd,dc->bnkc", unit_v_BxNxKx3, unit_e_3xLC)
+  return _similarity(geometry.gather(support_BxMxLC, nbr_BxNxK), cos_BxNxKxLC, similarity)
+
+
+def _best_at(k_BxNxLC, support_BxMxLC, unit_v_BxNxKx3, unit_e_3xLC, nbr_BxNxK, similarity):
+  """sim(j, l) at the given neighbour slot k of each point and channel: B x N x LC."""
+  j_BxNxLC = jnp.take_along_axis(nbr_BxNxK, k_BxNxLC, axis=2)
+  support = jnp.take_along_axis(support_BxMxLC, j_BxNxLC, axis=1)
+  unit_v_BxNxLCx3 = jnp.take_along_axis(unit_v_BxNxKx3, k_BxNxLC[..., None], axis=2)
+  cos = jnp.einsum("bncd,dc->bnc", unit_v_BxNxLCx3, unit_e_3xLC)
+  return _similarity(support, cos, similarity)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
+def neighbour_max(support_BxMxLC, unit_v_BxNxKx3, unit_e_3xLC, nbr_BxNxK, similarity: str):
+  """GCL's max over neighbours, whose gradient is taken at the winning neighbour only.
+
+  Autodiff of the max would carry B x N x K x LC cotangents through the gather and the cosines
+  (most of a training step's encoder time on the CPU); at the argmax they are B x N x LC. Same
+  value and, away from ties, the same gradient (tests/test_ops.py).
+  """
+  return jnp.max(edge_similarity(support_BxMxLC, unit_v_BxNxKx3, unit_e_3xLC, nbr_BxNxK,
+                                 similarity), axis=2)
+
+
+def _neighbour_max_fwd(support_BxMxLC, unit_v_BxNxKx3, unit_e_3xLC, nbr_BxNxK, similarity):
+  sim = edge_similarity(support_BxMxLC, unit_v_BxNxKx3, unit_e_3xLC, nbr_BxNxK, similarity)
+  k_BxNxLC = jnp.argmax(sim, axis=2).astype(nbr_BxNxK.dtype)
+  residuals = (k_BxNxLC, support_BxMxLC, unit_v_BxNxKx3, unit_e_3xLC, nbr_BxNxK)
+  return jnp.max(sim, axis=2), residuals
+
+
+def _neighbour_max_bwd(similarity, residuals, g_BxNxLC):
+  k_BxNxLC, support, unit_v, unit_e, nbr = residuals
+  _, vjp = jax.vjp(lambda s, v, e: _best_at(k_BxNxLC, s, v, e, nbr, similarity),
+                   support, unit_v, unit_e)
+  return (*vjp(g_BxNxLC), None)
+
+
+neighbour_max.defvjp(_neighbour_max_fwd, _neighbour_max_bwd)
+
+
 class GCL(nn.Module):
   """Graph convolutional layer (paper eq. 1-5, after 3D-GCN).
 
@@ -73,15 +121,9 @@ class GCL(nn.Module):
     # 3D-GCN initialises directions uniformly in [-1, 1]^3 (per channel and support).
     directions_3xLC = self.param("directions", _uniform_pm1, (3, l * c))
     v_BxNxKx3 = geometry.gather(xyz_BxNx3, nbr_BxNxK) - xyz_BxNx3[:, :, None, :]
-    unit_v = safe_normalize(v_BxNxKx3)
     unit_e_3xLC = safe_normalize(directions_3xLC.T).T
-    cos_BxNxKxLC = jnp.einsum("bnkd,dc->bnkc", unit_v, unit_e_3xLC)
-    support_BxNxKxLC = geometry.gather(support_BxNxLC, nbr_BxNxK)
-    if self.similarity == "sum":
-      sim = support_BxNxKxLC + cos_BxNxKxLC
-    else:
-      sim = nn.relu(cos_BxNxKxLC) * support_BxNxKxLC
-    best_BxNxLC = jnp.max(sim, axis=2)
+    best_BxNxLC = neighbour_max(support_BxNxLC, safe_normalize(v_BxNxKx3), unit_e_3xLC,
+                                nbr_BxNxK, self.similarity)
     b, n = best_BxNxLC.shape[:2]
     summed_BxNxC = jnp.sum(best_BxNxLC.reshape(b, n, l, c), axis=2)
     bias = self.param("bias", nn.initializers.zeros, (c,))

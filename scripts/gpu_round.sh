@@ -3,7 +3,7 @@
 # under 10 minutes each, from the repository root there. What a call reports lands in $OUT (the
 # device tool's folder; runs/gpu_out when unset), packed so that it comes back (at most 8 files).
 #
-#   bash scripts/gpu_round.sh bench             # voxel_cells and model_speed on the GPU
+#   bash scripts/gpu_round.sh bench             # voxel_cells, custom_gradients, model_speed
 #   bash scripts/gpu_round.sh train MINUTES [--config.FIELD=VALUE ...]  # (resume and) train, pack
 #   bash scripts/gpu_round.sh eval [DATA]       # deciding pairs (synthetic_mix:16 val), then the
 #                                               # model card's protocol sets (DATA: real samples)
@@ -36,6 +36,7 @@ case "${1:-}" in
   bench)
     { nvidia-smi -L || true
       "$PY" -m benchmarks.voxel_cells --points 8192 --candidates 512 --iters 32 --train
+      "$PY" -m benchmarks.custom_gradients --points 4096 --candidates 256 --iters 16
       "$PY" -m benchmarks.model_speed --points 8192 --iters 32 --train \
         --configs default_cpu,default_full,pvraft
     } 2>&1 | tee "$OUT/bench.txt"

@@ -87,18 +87,30 @@ def point_branch(p, corr, cand_xyz, coords, knn_count):
   return x.max(axis=1) @ p["knn_out"]["kernel"] + p["knn_out"]["bias"]
 
 
-def voxel_cells(corr, cand_xyz, coords, scale):
-  """N x 27 mean correlation per cell of the 3x3x3 cube (0 when empty)."""
-  n, k = corr.shape
-  sums = np.zeros((n, 27))
-  counts = np.zeros((n, 27))
+def voxel_index(cand_xyz, coords, scale):
+  """N x K cell (0..26) of each candidate in the 3x3x3 cube around its point, -1 outside."""
+  n, k = cand_xyz.shape[:2]
+  index = np.full((n, k), -1)
   for i in range(n):
     for a in range(k):
       cell = np.round((cand_xyz[i, a] - coords[i]) / scale)
       if np.all(np.abs(cell) <= 1):
         dx, dy, dz = (cell + 1).astype(int)
-        sums[i, dx * 9 + dy * 3 + dz] += corr[i, a]
-        counts[i, dx * 9 + dy * 3 + dz] += 1
+        index[i, a] = dx * 9 + dy * 3 + dz
+  return index
+
+
+def voxel_cells(corr, cand_xyz, coords, scale):
+  """N x 27 mean correlation per cell of the 3x3x3 cube (0 when empty)."""
+  n, k = corr.shape
+  index = voxel_index(cand_xyz, coords, scale)
+  sums = np.zeros((n, 27))
+  counts = np.zeros((n, 27))
+  for i in range(n):
+    for a in range(k):
+      if index[i, a] >= 0:
+        sums[i, index[i, a]] += corr[i, a]
+        counts[i, index[i, a]] += 1
   return np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
 
 

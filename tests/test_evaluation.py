@@ -214,7 +214,7 @@ def test_shipped_recipe_configs_build_the_shipped_model():
   for arg in shipped.ARGS:  # every round trains the same network (run with other candidates)
     config = shipped.get_config(arg)
     assert not checkpointing.model_differences(config, stored, ignore=PARAMETER_FREE_FIELDS), arg
-  # The shipped step is configs/shipped.py's run (round 6, a stage-1 run).
+  # The shipped step is configs/shipped.py's run (round 7, a stage-1 run).
   recipe = shipped.get_config("")
   assert not checkpointing.model_differences(recipe, stored)
   for field in ("stage", "init_from", "num_iters", "num_steps"):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import numpy_reference as ref
-from jaxflow import geometry, losses, metrics
+from jaxflow import geometry, layers, losses, metrics
 from jaxflow.correlation import PointVoxelCorrelation, truncated_correlation, voxel_means
 from jaxflow.layers import GCL, SetConv
 from jaxflow.update import GRUCell, SingleGateCell
@@ -76,6 +76,35 @@ def test_gcl_matches_loop(seed, similarity):
   close(got[0], ref.gcl(numpy_params(variables), f, xyz, nbr, 3, similarity))
 
 
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("similarity", ["sum", "product"])
+def test_gcl_neighbour_max_gradient_equals_autodiff_of_the_max(seed, similarity):
+  # The custom VJP (gradient at the winning neighbour) against autodiff of the dense max, for the
+  # support features, the edge directions and the support directions. The self edge (cosine 0)
+  # makes ties at 0 in the product form, where both give a zero gradient.
+  rng = np.random.default_rng(seed)
+  xyz = jnp.asarray(cloud(seed, n=32))[None]
+  nbr = geometry.knn(xyz, xyz, 6)
+  unit_v = layers.safe_normalize(geometry.gather(xyz, nbr) - xyz[:, :, None, :])
+  support = jnp.asarray(rng.normal(size=(1, 32, 12)), jnp.float32)
+  unit_e = layers.safe_normalize(jnp.asarray(rng.normal(size=(12, 3)), jnp.float32)).T
+  weights = jnp.asarray(rng.normal(size=(1, 32, 12)), jnp.float32)
+
+  def dense_max(*args):  # autodiff of this is the reference
+    return jnp.max(layers.edge_similarity(*args), axis=2)
+
+  def loss(fn):
+    return lambda s, v, e: jnp.sum(weights * jnp.sin(fn(s, v, e, nbr, similarity)))
+
+  args = (support, unit_v, unit_e)
+  close(layers.neighbour_max(*args, nbr, similarity), dense_max(*args, nbr, similarity))
+  got = jax.grad(loss(layers.neighbour_max), argnums=(0, 1, 2))(*args)
+  want = jax.grad(loss(dense_max), argnums=(0, 1, 2))(*args)
+  for g, w in zip(got, want):
+    close(g, w)
+  assert np.count_nonzero(np.asarray(got[0])) > 0
+
+
 def correlation_inputs(seed, n=30, k=40):
   rng = np.random.default_rng(seed)
   coords = rng.normal(size=(n, 3)).astype(np.float32)
@@ -95,11 +124,16 @@ def test_voxel_cells_match_loop(seed, scale, one_cell_at_a_time):
   want = ref.voxel_cells(corr, cand, coords, scale)
   close(got[0], want)
   assert np.any(want == 0) and np.any(want != 0)  # both empty and filled cells were exercised
-  if one_cell_at_a_time:  # the loop's gradient (through lax.map) equals the vectorised form's
-    def loss(c, flag):
-      return jnp.sum(voxel_means(c, offset, scale, one_cell_at_a_time=flag) ** 2)
-    c = jnp.asarray(corr)[None]
-    close(jax.grad(loss)(c, True), jax.grad(loss)(c, False))
+  # Gradient of sum(means^2): d/d corr[i, a] = 2 mean / count of a's cell, 0 outside the cube.
+  def loss(c):
+    return jnp.sum(voxel_means(c, offset, scale, one_cell_at_a_time=one_cell_at_a_time) ** 2)
+
+  index = ref.voxel_index(cand, coords, scale)
+  counts = np.stack([np.bincount(row[row >= 0], minlength=27) for row in index])
+  rows = np.arange(len(index))[:, None]
+  cell = np.maximum(index, 0)
+  want_grad = np.where(index >= 0, 2 * want[rows, cell] / np.maximum(counts[rows, cell], 1), 0.0)
+  close(jax.grad(loss)(jnp.asarray(corr)[None])[0], want_grad)
 
 
 def test_voxel_cells_validity_cube_and_empty():
