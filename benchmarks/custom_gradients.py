@@ -1,4 +1,4 @@
-"""The training step's gradient with plain autodiff against the model's two custom VJPs, one process.
+"""A training step's gradient with plain autodiff and with the model's two custom VJPs, one process.
 
     python -m benchmarks.custom_gradients --points 2048 --candidates 128 --iters 16
 

@@ -23,8 +23,8 @@ checkpoints/jaxflow_synthetic/MODEL_CARD.md says what each round gave.
 
 from configs import default
 
-ARGS = ("", "round6", "round5", "round4", "round4_stage2", "round3", "round3_stage2", "round2_warmup",
-        "round2", "round2_stage2", "round1", "round1_stage2")
+ARGS = ("", "round6", "round5", "round4", "round4_stage2", "round3", "round3_stage2",
+        "round2_warmup", "round2", "round2_stage2", "round1", "round1_stage2")
 
 
 def small_model_config():
@@ -58,7 +58,7 @@ def get_config(arg: str = ""):
   if arg == "round6":
     return _round6()
   # Round 7: round 6 continued with its recipe and a new data seed; the custom gradients of the GCL
-  # and voxel cells (same values) made a step 1.7x faster, so a session's hour held 1700 steps.
+  # and voxel cells (same values, 1.7x faster) let the session's time hold 1700 steps.
   return _continued(_round6(), 7, "runs/shipped_r6", 1700)
 
 
