@@ -1,21 +1,20 @@
-"""A training step's gradient with plain autodiff and with the model's two custom VJPs, one process.
+"""A training step's gradient: plain autodiff, two custom VJPs, recomputed iterations; one process.
 
     python -m benchmarks.custom_gradients --points 2048 --candidates 128 --iters 16
 
 Rows add, in turn, `jaxflow.layers.neighbour_max` (GCL: gradient at the winning neighbour only) and
-`jaxflow.correlation.cell_means` (voxel cells: gradient from the cell index and counts). For each:
+`jaxflow.correlation.cell_means` (voxel cells: gradient from the cell index and counts), then
+`model.remat_iterations` (the backward recomputes each iteration from its carry). For each:
 the compiled gradient's temporary memory (XLA's memory_analysis, the same on every run), the median
 wall time after compilation, and the largest difference of any gradient from plain autodiff's,
 relative to that parameter's largest gradient.
 """
 
-import argparse
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.model_speed import CONFIGS, device_line, timed
+from benchmarks.model_speed import CONFIGS, device_line, model_parser, timed
 from benchmarks.voxel_cells import temp_mib
 from jaxflow import correlation, layers, losses
 from jaxflow.model import build_model
@@ -30,27 +29,23 @@ def plain_cell_means(corr, index, cells, one_cell_at_a_time):
   return sums / jnp.maximum(counts, 1.0)
 
 
-ROWS = {  # name: (GCL max, voxel cell means)
-  "plain autodiff": (plain_neighbour_max, plain_cell_means),
-  "+ GCL neighbour_max": (layers.neighbour_max, plain_cell_means),
-  "+ voxel cell_means": (layers.neighbour_max, correlation.cell_means),
+ROWS = {  # name: (GCL max, voxel cell means, model.remat_iterations)
+  "plain autodiff": (plain_neighbour_max, plain_cell_means, False),
+  "+ GCL neighbour_max": (layers.neighbour_max, plain_cell_means, False),
+  "+ voxel cell_means": (layers.neighbour_max, correlation.cell_means, False),
+  "+ remat_iterations": (layers.neighbour_max, correlation.cell_means, True),
 }
 
 
 def main():
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--config", default="default_cpu", choices=sorted(CONFIGS))
-  parser.add_argument("--points", type=int, default=2048)
-  parser.add_argument("--candidates", type=int, default=128, help="model.truncate_k")
-  parser.add_argument("--iters", type=int, default=16)
+  parser = model_parser(__doc__, points=2048, candidates=128, iters=16, repeats=3)
   parser.add_argument("--batch", type=int, default=2)
-  parser.add_argument("--repeats", type=int, default=3)
   args = parser.parse_args()
 
   print(device_line())
   cfg = CONFIGS[args.config]()
   cfg.truncate_k = args.candidates
-  model = build_model(cfg)
+  model = build_model(cfg)  # parameters: the same with and without remat_iterations
   rng = np.random.default_rng(0)
   pc1 = jnp.asarray(rng.uniform(-10, 10, (args.batch, args.points, 3)), jnp.float32)
   pc2 = pc1 + jnp.asarray(rng.normal(0, 0.3, pc1.shape), jnp.float32)
@@ -62,12 +57,13 @@ def main():
   originals = layers.neighbour_max, correlation.cell_means
   reference, baseline = None, None
   try:
-    for name, (gcl_max, cell_means) in ROWS.items():
+    for name, (gcl_max, cell_means, remat) in ROWS.items():
       # The model calls both by module attribute: pin this row's forms for the trace.
       layers.neighbour_max, correlation.cell_means = gcl_max, cell_means
+      row_model = model.clone(remat_iterations=remat)
 
       def loss(p, a, b, flow):
-        flows = model.apply({"params": p}, a, b, num_iters=args.iters, refine=False)["flows"]
+        flows = row_model.apply({"params": p}, a, b, num_iters=args.iters, refine=False)["flows"]
         return losses.sequence_loss(flows, flow)
 
       grad = jax.jit(jax.grad(loss))

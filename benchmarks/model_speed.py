@@ -42,6 +42,18 @@ def device_line():
           f"host {platform.processor() or platform.machine()}")
 
 
+def model_parser(doc: str, points: int, candidates: int, iters: int,
+                 repeats: int) -> argparse.ArgumentParser:
+  """The options of the benchmarks that time one model config (voxel_cells, custom_gradients)."""
+  parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+  parser.add_argument("--config", default="default_cpu", choices=sorted(CONFIGS))
+  parser.add_argument("--points", type=int, default=points)
+  parser.add_argument("--candidates", type=int, default=candidates, help="model.truncate_k")
+  parser.add_argument("--iters", type=int, default=iters)
+  parser.add_argument("--repeats", type=int, default=repeats)
+  return parser
+
+
 def peak_memory_gib():
   stats = jax.devices()[0].memory_stats() or {}
   peak = stats.get("peak_bytes_in_use")

@@ -8,14 +8,13 @@ memory (XLA's memory_analysis, the same on every run), the median wall time afte
 and the same for a training step (batch 2, 8 iterations, sequence loss) with --train.
 """
 
-import argparse
 import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.model_speed import CONFIGS, device_line, timed
+from benchmarks.model_speed import CONFIGS, device_line, model_parser, timed
 from jaxflow import correlation, losses
 from jaxflow.model import build_model
 
@@ -27,12 +26,7 @@ def temp_mib(jitted, *args):
 
 
 def main():
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--config", default="default_cpu", choices=sorted(CONFIGS))
-  parser.add_argument("--points", type=int, default=8192)
-  parser.add_argument("--candidates", type=int, default=512, help="model.truncate_k")
-  parser.add_argument("--iters", type=int, default=32)
-  parser.add_argument("--repeats", type=int, default=2)
+  parser = model_parser(__doc__, points=8192, candidates=512, iters=32, repeats=2)
   parser.add_argument("--train", action="store_true")
   args = parser.parse_args()
 

@@ -37,7 +37,7 @@ def config_from_dict(d: dict) -> ml_collections.ConfigDict:
 
 
 # Model fields added after checkpoints were written without them, and the value they had then.
-ADDED_MODEL_FIELDS = {"infer_truncate_k": 0}
+ADDED_MODEL_FIELDS = {"infer_truncate_k": 0, "remat_iterations": False}
 
 
 def model_differences(a: ml_collections.ConfigDict, b: ml_collections.ConfigDict,

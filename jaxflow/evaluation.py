@@ -29,8 +29,9 @@ SHIPPED_CHECKPOINT = Path(__file__).absolute().parent.parent / "checkpoints" / "
 # The settings evaluate.py and predict use when no --config is given (8192 points, 32 iterations).
 EVAL_CONFIG = f"{Path(__file__).absolute().parent.parent / 'configs' / 'default.py'}:eval"
 # Model fields that change neither the parameters nor the training: evaluation settings
-# (corr_chunk: memory, not results; infer_truncate_k: the correlation candidates at test time).
-RUNTIME_MODEL_FIELDS = ("corr_chunk", "infer_truncate_k")
+# (corr_chunk, remat_iterations: memory, not results; infer_truncate_k: the correlation candidates
+# at test time).
+RUNTIME_MODEL_FIELDS = ("corr_chunk", "infer_truncate_k", "remat_iterations")
 
 
 def requested_model_fields(config_flag) -> list[str]:

@@ -43,6 +43,7 @@ class SceneFlowNet(nn.Module):
   refine: str = "graph"
   refine_widths: Sequence[int] = ()
   corr_chunk: int = 0
+  remat_iterations: bool = False
 
   def setup(self):
     if self.encoder not in DEFAULT_WIDTHS:
@@ -108,6 +109,10 @@ class SceneFlowNet(nn.Module):
       coords = coords + delta
       return (h, coords), coords - pc1_BxNx3
 
+    if self.remat_iterations:
+      # The backward recomputes each iteration from its carry instead of keeping its activations
+      # (B x N x K x C per iteration): less memory for ~one more forward of the iterations.
+      step = nn.remat(step, prevent_cse=False)
     scan = nn.scan(
       step, variable_broadcast="params", split_rngs={"params": False}, length=num_iters
     )
@@ -122,7 +127,8 @@ class SceneFlowNet(nn.Module):
 
 
 # Model fields no parameter depends on: a run may warm-start from one with other values of these.
-PARAMETER_FREE_FIELDS = ("truncate_k", "corr_knn", "corr_chunk", "infer_truncate_k")
+PARAMETER_FREE_FIELDS = ("truncate_k", "corr_knn", "corr_chunk", "infer_truncate_k",
+                         "remat_iterations")
 
 
 def build_model(model_config: ml_collections.ConfigDict, inference: bool = False) -> SceneFlowNet:

@@ -101,10 +101,10 @@ def test_infer_truncate_k_sets_the_candidates_when_evaluating_only(workdir):
     config.model.infer_truncate_k = -1
   with pytest.raises(ValueError, match="infer_truncate_k"):
     training.build_model(config.model, inference=True)
-  # Checkpoints written before the field existed compare as infer_truncate_k 0.
+  # Checkpoints written before the fields existed compare as infer_truncate_k 0, no remat.
   old = saved.copy_and_resolve_references()
   with old.unlocked():
-    del old.model["infer_truncate_k"]
+    del old.model["infer_truncate_k"], old.model["remat_iterations"]
   assert not checkpointing.model_differences(old, default.get_config("smoke"))
   assert checkpointing.model_differences(old, config) == ["infer_truncate_k: 0 != -1"]
 
@@ -214,11 +214,11 @@ def test_shipped_recipe_configs_build_the_shipped_model():
   for arg in shipped.ARGS:  # every round trains the same network (run with other candidates)
     config = shipped.get_config(arg)
     assert not checkpointing.model_differences(config, stored, ignore=PARAMETER_FREE_FIELDS), arg
-  # The shipped step is configs/shipped.py's run (round 7, a stage-1 run).
+  # The shipped step is configs/shipped.py's run (round 8, a stage-1 run).
   recipe = shipped.get_config("")
   assert not checkpointing.model_differences(recipe, stored)
   for field in ("stage", "init_from", "num_iters", "num_steps"):
     assert stored.train[field] == recipe.train[field], field
   assert stored.data.crop_from == recipe.data.crop_from
   with pytest.raises(ValueError, match="takes one of"):
-    shipped.get_config("round7")
+    shipped.get_config("round8")

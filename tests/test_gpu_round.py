@@ -38,9 +38,11 @@ def test_time_cut_round_packs_and_resumes_from_the_pack(tmp_path):
   assert "stopped by SIGTERM" in proc.stdout
   (first,) = packed_steps(tmp_path / "out" / "gpu_round.tgz")
   assert first > 0
-  # A fresh machine: no workdir, the pack carried in; it resumes there and runs to num_steps.
+  # A fresh machine: no workdir, the pack carried in; it resumes there and runs to num_steps,
+  # with the iterations recomputed in the backward (memory only, so a run may switch it on).
   (tmp_path / "out" / "gpu_round.tgz").rename(tmp_path / "carry.tgz")
-  proc = gpu_round(tmp_path, "train", "5", *TOY, f"--config.train.num_steps={first + 2}")
+  proc = gpu_round(tmp_path, "train", "5", *TOY, f"--config.train.num_steps={first + 2}",
+                   "--config.model.remat_iterations=true")
   assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
   assert f"checkpoints/{first}" in proc.stdout  # "resuming from .../checkpoints/FIRST"
   assert packed_steps(tmp_path / "out" / "gpu_round.tgz") == [first + 2]
