@@ -60,7 +60,7 @@ def get_config(arg: str = ""):
     return _round7()
   if arg == "round6":
     return _round6()
-  # Round 8: round 7 continued with its recipe and a new data seed, for what the session's time held.
+  # Round 8: round 7 continued with its recipe and a new data seed, as long as the session allowed.
   return _continued(_round7(), 8, "runs/shipped_r7", 1600)
 
 
