@@ -82,8 +82,7 @@ def cell_means(corr_BxNxK, index_BxNxK, cells: int, one_cell_at_a_time: bool):
   and the counts; autodiff of the sums would keep the B x N x K x cells memberships of every
   iteration.
   """
-  sums_BxNxR, counts_BxNxR = _cell_sums(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time)
-  return sums_BxNxR / jnp.maximum(counts_BxNxR, 1.0)
+  return _cell_means_fwd(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time)[0]
 
 
 def _cell_means_fwd(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time):
