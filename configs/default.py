@@ -69,6 +69,9 @@ def get_config(arg: str = "") -> ml_collections.ConfigDict:
   # > 0: sample each cloud to crop_from points (the density to learn) and train on a window of
   # num_points of them around a random point (data.sampling.crop_pair); 0: sample num_points.
   config.data.crop_from = 0
+  # With crop_from: mask out of the loss the window's points whose flow leaves pc2's window (their
+  # match is not in the network's view). False keeps rounds 2-8 of configs/shipped.py as they ran.
+  config.data.crop_mask_outside = False
   config.data.augment = ml_collections.ConfigDict()  # training augmentation; identity = off.
   config.data.augment.rotation_deg = 0.0  # uniform rotation about the vertical axis, +- degrees.
   config.data.augment.scale = (1.0, 1.0)  # uniform scale range (low, high).

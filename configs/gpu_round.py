@@ -25,5 +25,5 @@ def get_config():
   config.train.log_every = 25
   config.train.checkpoint_every = 250
   config.train.max_to_keep = 1  # one step folder to pack and bring back
-  config.eval.dataset = ""  # scripts/gpu_round.sh eval decides on synthetic_mix:16 val
+  config.eval.dataset = ""  # scripts/gpu_round.sh eval decides on synthetic_mix:100 val
   return config

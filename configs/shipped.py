@@ -2,12 +2,15 @@ r"""The shipped checkpoint `checkpoints/jaxflow_synthetic/`: configs/default.py'
 trained on synthetic_mix (FlyingThings-like and LiDAR-like pairs alternating), in rounds that each
 continue from the previous one.
 
-Round 8 (""): round 7's stage 1 continued with the same recipe (2048-point windows, 128
-correlation candidates, 16 iterations), a new data seed and 1600 steps; it evaluates and predicts
-with 512 candidates (model.infer_truncate_k). No stage 2 (round 4's did not beat its stage 1).
+Round 9 (""): round 8 continued with one change, the window points whose flow leaves pc2's window
+masked out of the loss (data.crop_mask_outside), a new data seed and 1400 steps; it evaluates and
+predicts with 512 candidates (model.infer_truncate_k). No stage 2 (round 4's did not beat its
+stage 1).
 
-    python train.py --config configs/shipped.py --workdir runs/shipped_r8
+    python train.py --config configs/shipped.py --workdir runs/shipped_r9
 
+Round 8 (`round8`): round 7's stage 1 continued with the same recipe (2048-point windows, 128
+correlation candidates, 16 iterations), a new data seed and 1600 steps.
 Rounds 7 (`round7`), 6 (`round6`) and 5 (`round5`): the same recipe continued from rounds 6, 5
 and 4.
 
@@ -24,8 +27,8 @@ checkpoints/jaxflow_synthetic/MODEL_CARD.md says what each round gave.
 
 from configs import default
 
-ARGS = ("", "round7", "round6", "round5", "round4", "round4_stage2", "round3", "round3_stage2",
-        "round2_warmup", "round2", "round2_stage2", "round1", "round1_stage2")
+ARGS = ("", "round8", "round7", "round6", "round5", "round4", "round4_stage2", "round3",
+        "round3_stage2", "round2_warmup", "round2", "round2_stage2", "round1", "round1_stage2")
 
 
 def small_model_config():
@@ -56,11 +59,21 @@ def get_config(arg: str = ""):
     return _round4(arg)
   if arg == "round5":
     return _round5()
+  if arg == "round8":
+    return _round8()
   if arg == "round7":
     return _round7()
   if arg == "round6":
     return _round6()
-  # Round 8: round 7 continued with its recipe and a new data seed, as long as the session allowed.
+  # Round 9: round 8 continued with one change, the window points whose flow leaves pc2's window
+  # masked out of the loss.
+  config = _continued(_round8(), 9, "runs/shipped_r8", 1400)
+  config.data.crop_mask_outside = True
+  return config
+
+
+def _round8():
+  """Round 8 as it ran: round 7 continued with its recipe and a new data seed, 1600 steps."""
   return _continued(_round7(), 8, "runs/shipped_r7", 1600)
 
 

@@ -325,6 +325,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
     dataset, config.train.batch_size, config.data.num_points, seed=config.seed, shuffle=True,
     augment=augmentation(config), skip_broken=config.data.skip_broken,
     prefetch=config.data.prefetch, crop_from=config.data.crop_from,
+    crop_mask_outside=config.data.crop_mask_outside,
   )
   total_steps = config.train.num_steps or config.train.num_epochs * loader.steps_per_epoch
   tx = make_optimizer(config, total_steps)

@@ -3,7 +3,8 @@
 # Each round is the exact command that was run; rerunning a train.py line on the same workdir resumes
 # from its newest checkpoint (a later round may raise --config.train.num_steps). See MODEL_CARD.md.
 #
-#   bash scripts/train_shipped.sh            # round 8 (the shipped one; needs round 7), then the copy
+#   bash scripts/train_shipped.sh            # round 9 (the shipped one; needs round 8), then the copy
+#   bash scripts/train_shipped.sh round8     # round 8, which round 9 continues (needs round 7)
 #   bash scripts/train_shipped.sh round7     # round 7, which round 8 continues (needs round 6)
 #   bash scripts/train_shipped.sh round6     # round 6, which round 7 continues (needs round 5)
 #   bash scripts/train_shipped.sh round5     # round 5, which round 6 continues (needs round 4)
@@ -116,15 +117,23 @@ if [[ "${1:-}" == "round7" ]]; then
   exit 0
 fi
 
-if [[ "${1:-}" != "copy" ]]; then
+if [[ "${1:-}" == "round8" ]]; then
   # Round 8: round 7's stage 1 continued (same recipe, new data seed, 1600 steps).
   [[ -d runs/shipped_r7/checkpoints ]] || bash "$0" round7
-  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r8
+  $NICE python train.py --config configs/shipped.py:round8 --workdir runs/shipped_r8
+  exit 0
 fi
 
-# Ship the final step of round 8's stage 1 (parameters, config and optimiser state; its refinement
+if [[ "${1:-}" != "copy" ]]; then
+  # Round 9: round 8's stage 1 continued with the window points whose flow leaves pc2's window
+  # masked out of the loss (data.crop_mask_outside), a new data seed, 1400 steps.
+  [[ -d runs/shipped_r8/checkpoints ]] || bash "$0" round8
+  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r9
+fi
+
+# Ship the final step of round 9's stage 1 (parameters, config and optimiser state; its refinement
 # parameters are untrained and unused: a stage-1 checkpoint gives the coarse flow).
-SHIP=runs/shipped_r8
+SHIP=runs/shipped_r9
 STEP=$(ls $SHIP/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
 DEST=checkpoints/jaxflow_synthetic
 mkdir -p "$DEST"
@@ -134,7 +143,8 @@ cp $SHIP/config.json "$DEST/config.json"
 # One learning curve for the rounds: each run's steps (training and held-out metrics) are counted on
 # from where the previous run ended; the end-of-run evaluation is the last run's.
 python - "$DEST/learning_curve.png" runs/shipped_r2_warmup runs/shipped_r2 runs/shipped_r3 \
-  runs/shipped_r4 runs/shipped_r5 runs/shipped_r6 runs/shipped_r7 runs/shipped_r8 <<'PY'
+  runs/shipped_r4 runs/shipped_r5 runs/shipped_r6 runs/shipped_r7 runs/shipped_r8 runs/shipped_r9 \
+  <<'PY'
 import json, pathlib, shutil, sys
 from jaxflow import viz
 joined = pathlib.Path("runs/shipped_rounds")

@@ -97,6 +97,26 @@ def test_crop_pair_takes_the_windows_nearest_the_centre_and_its_image():
     crop_pair(pair, 290, np.random.default_rng(0))  # pc2 has 280
 
 
+def test_crop_pair_masks_the_points_whose_flow_leaves_the_pc2_window():
+  rng = np.random.default_rng(1)
+  pc1 = rng.uniform(0, 10, (400, 3)).astype(np.float32)
+  far = rng.random(400) < 0.2  # a fifth of the points jump 30 m, far beyond any 50-point window
+  flow = np.where(far[:, None], [30.0, 0, 0], [2.0, 0, 0]).astype(np.float32)
+  pair = Pair(pc1=pc1, pc2=pc1 + flow, flow=flow, mask=np.ones(400, bool), name="jump")
+  for seed in range(6):
+    plain = crop_pair(pair, 50, np.random.default_rng(seed))
+    masked = crop_pair(pair, 50, np.random.default_rng(seed), mask_outside=True)
+    # The same windows; only the mask changes.
+    assert np.array_equal(plain.pc1, masked.pc1) and np.array_equal(plain.pc2, masked.pc2)
+    assert plain.mask.all()
+    # pc2's window gathers the points moved like the centre, so the window's points kept are
+    # exactly those that moved like it (the centre among them); each window holds both groups.
+    kept_motions = set(masked.flow[masked.mask, 0].tolist())
+    assert len(kept_motions) == 1
+    assert np.array_equal(masked.mask, masked.flow[:, 0] == kept_motions.pop())
+    assert 0 < masked.mask.sum() < 50
+
+
 def test_loader_crops_windows_at_the_sampled_density():
   ds = Numbered(n=6, sizes={i: 200 for i in range(6)})
   plain = BatchLoader(ds, 2, 16, seed=3, prefetch=0)
@@ -108,6 +128,10 @@ def test_loader_crops_windows_at_the_sampled_density():
   # than 16 rows sampled from all 200.
   span = lambda batch: np.ptp(batch["pc1"][:, :, 1], axis=1)
   assert span(a).max() < 60 and span(plain.batch(1)).min() > 100
+  masked = BatchLoader(ds, 2, 16, seed=3, prefetch=0, crop_from=120, crop_mask_outside=True)
+  m = masked.batch(1)
+  assert np.array_equal(m["pc1"], a["pc1"]) and np.array_equal(m["pc2"], a["pc2"])
+  assert np.all(m["mask"] <= a["mask"])  # the option only ever removes points from the loss
   with pytest.raises(ConfigError, match="crop_from"):
     BatchLoader(ds, 2, 16, seed=0, crop_from=8)
 

@@ -214,11 +214,12 @@ def test_shipped_recipe_configs_build_the_shipped_model():
   for arg in shipped.ARGS:  # every round trains the same network (run with other candidates)
     config = shipped.get_config(arg)
     assert not checkpointing.model_differences(config, stored, ignore=PARAMETER_FREE_FIELDS), arg
-  # The shipped step is configs/shipped.py's run (round 8, a stage-1 run).
+  # The shipped step is configs/shipped.py's run (round 9, a stage-1 run).
   recipe = shipped.get_config("")
   assert not checkpointing.model_differences(recipe, stored)
   for field in ("stage", "init_from", "num_iters", "num_steps"):
     assert stored.train[field] == recipe.train[field], field
-  assert stored.data.crop_from == recipe.data.crop_from
+  for field in ("crop_from", "crop_mask_outside"):
+    assert stored.data[field] == recipe.data[field], field
   with pytest.raises(ValueError, match="takes one of"):
-    shipped.get_config("round8")
+    shipped.get_config("round10")

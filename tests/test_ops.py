@@ -56,11 +56,17 @@ def test_knn_chunked_equals_whole(chunk):
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-def test_setconv_matches_loop(seed):
-  xyz = cloud(seed)
+@pytest.mark.parametrize("features", ["8 channels", "the coordinates, 30 m away"])
+def test_setconv_matches_loop(seed, features):
+  # The second case is an encoder's first layer: the coordinates as features, far (30 m) and dense,
+  # where differences of products (p_j W - p_i W) instead of products of differences would fail.
+  xyz, width = cloud(seed), 24  # fc1 width (8 + 24) / 2 = 16: a multiple of the 8 norm groups
   f = np.random.default_rng(seed + 10).normal(size=(40, 8)).astype(np.float32)
+  if features != "8 channels":
+    xyz, width = cloud(seed, spread=0.1) + np.float32(30.0), 32
+    f = xyz
   nbr = ref.knn(xyz, 8)
-  variables, got = init_apply(SetConv(24), seed, jnp.asarray(f)[None], jnp.asarray(xyz)[None],
+  variables, got = init_apply(SetConv(width), seed, jnp.asarray(f)[None], jnp.asarray(xyz)[None],
                               jnp.asarray(nbr)[None])
   close(got[0], ref.setconv(numpy_params(variables), f, xyz, nbr))
 

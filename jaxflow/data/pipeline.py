@@ -93,13 +93,14 @@ class BatchLoader:
   are pickled to them, and the calling script needs the usual `if __name__ == "__main__":` guard).
   crop_from > 0 samples each cloud to crop_from points first (the density to learn, e.g. the test's
   8192) and trains on a window of num_points of them (`sampling.crop_pair`); 0 samples num_points.
+  crop_mask_outside masks out of a window's loss the points whose flow leaves pc2's window.
   Batch dict: float32 'pc1', 'pc2', 'flow' (B x N x 3), 'mask' (B x N, 1/0) and 'replaced' (int, the
   clouds sampled with replacement because they had fewer than num_points points).
   """
 
   def __init__(self, dataset, batch_size: int, num_points: int, seed: int, shuffle: bool = True,
                augment: dict | None = None, skip_broken: bool = False, prefetch: int = 2,
-               workers: int = 0, crop_from: int = 0):
+               workers: int = 0, crop_from: int = 0, crop_mask_outside: bool = False):
     if batch_size < 1 or num_points < 1 or seed < 0 or prefetch < 0 or workers < 0:
       raise ConfigError("BatchLoader: need batch_size >= 1, num_points >= 1, seed >= 0, prefetch >= 0, "
                         f"workers >= 0; got {batch_size}, {num_points}, {seed}, {prefetch}, "
@@ -117,6 +118,7 @@ class BatchLoader:
     self.prefetch = prefetch
     self.workers = workers
     self.crop_from = crop_from
+    self.crop_mask_outside = crop_mask_outside
     self.steps_per_epoch = len(dataset) // batch_size
     if self.steps_per_epoch == 0:
       raise ConfigError(f"{getattr(dataset, 'name', 'dataset')}: {len(dataset)} pairs, fewer than "
@@ -161,7 +163,7 @@ class BatchLoader:
       try:
         pair, replaced = sample_pair(self.dataset[index], self.crop_from or self.num_points, rng)
         if self.crop_from:
-          pair = crop_pair(pair, self.num_points, rng)
+          pair = crop_pair(pair, self.num_points, rng, self.crop_mask_outside)
       except DataError as e:
         if not self.skip_broken:
           raise

@@ -36,7 +36,8 @@ def sample_pair(pair: Pair, num_points: int, rng: np.random.Generator) -> tuple[
   return sampled, int(rep1) + int(rep2)
 
 
-def crop_pair(pair: Pair, num_points: int, rng: np.random.Generator) -> Pair:
+def crop_pair(pair: Pair, num_points: int, rng: np.random.Generator,
+              mask_outside: bool = False) -> Pair:
   """A local window of num_points points of each cloud, at the density of the cloud given.
 
   The window of pc1 is the num_points points nearest a random pc1 point c; the window of pc2 is the
@@ -44,6 +45,11 @@ def crop_pair(pair: Pair, num_points: int, rng: np.random.Generator) -> Pair:
   does. Training on windows of a densely sampled pair teaches a network at the test density
   (8192 points) for the cost of a few hundred points: the graph, correlation and voxel features are
   all local and in metres, so the density, not the extent, is what must match.
+
+  A pc1 point of the window whose target (point + flow) lies farther from c + flow(c) than the
+  farthest pc2 point of the window moves out of what the network sees of pc2: no correlation can
+  find its match. mask_outside=True drops those points from the loss (mask False) instead of
+  training the network to guess where they went.
   """
   for name in ("pc1", "pc2"):
     if len(getattr(pair, name)) < num_points:
@@ -56,9 +62,15 @@ def crop_pair(pair: Pair, num_points: int, rng: np.random.Generator) -> Pair:
     return np.sort(np.argpartition(d, num_points - 1)[:num_points])
 
   idx1 = nearest(pair.pc1, pair.pc1[centre])
-  idx2 = nearest(pair.pc2, pair.pc1[centre] + pair.flow[centre])
+  target = pair.pc1[centre] + pair.flow[centre]
+  idx2 = nearest(pair.pc2, target)
+  mask = take(pair.mask, idx1)
+  if mask_outside:
+    radius = np.sqrt(np.max(np.sum((pair.pc2[idx2] - target) ** 2, axis=1)))
+    moved_to = pair.pc1[idx1] + pair.flow[idx1]
+    mask = mask & (np.sqrt(np.sum((moved_to - target) ** 2, axis=1)) <= radius)
   return Pair(pc1=take(pair.pc1, idx1), pc2=take(pair.pc2, idx2), flow=take(pair.flow, idx1),
-              mask=take(pair.mask, idx1), name=pair.name)
+              mask=mask, name=pair.name)
 
 
 def check_augment(augment: dict | None) -> dict:
