@@ -96,31 +96,12 @@ if [[ "${1:-}" == "round4" ]]; then
   exit 0
 fi
 
-if [[ "${1:-}" == "round5" ]]; then
-  # Round 5: round 4's stage 1 continued (same recipe, new data seed, rate 3e-4 decayed to 0).
-  [[ -d runs/shipped_r4/checkpoints ]] || bash "$0" round4
-  $NICE python train.py --config configs/shipped.py:round5 --workdir runs/shipped_r5
-  exit 0
-fi
-
-if [[ "${1:-}" == "round6" ]]; then
-  # Round 6: round 5's stage 1 continued (same recipe, new data seed, 1000 steps).
-  [[ -d runs/shipped_r5/checkpoints ]] || bash "$0" round5
-  $NICE python train.py --config configs/shipped.py:round6 --workdir runs/shipped_r6
-  exit 0
-fi
-
-if [[ "${1:-}" == "round7" ]]; then
-  # Round 7: round 6's stage 1 continued (same recipe, new data seed, 1700 steps).
-  [[ -d runs/shipped_r6/checkpoints ]] || bash "$0" round6
-  $NICE python train.py --config configs/shipped.py:round7 --workdir runs/shipped_r7
-  exit 0
-fi
-
-if [[ "${1:-}" == "round8" ]]; then
-  # Round 8: round 7's stage 1 continued (same recipe, new data seed, 1600 steps).
-  [[ -d runs/shipped_r7/checkpoints ]] || bash "$0" round7
-  $NICE python train.py --config configs/shipped.py:round8 --workdir runs/shipped_r8
+if [[ "${1:-}" =~ ^round([5-8])$ ]]; then
+  # Rounds 5-8: the previous round's stage 1 continued with its recipe and a new data seed (round 5
+  # with the rate 3e-4 decayed to 0; 800, 1000, 1700 and 1600 steps: configs/shipped.py).
+  n=${BASH_REMATCH[1]}
+  [[ -d runs/shipped_r$((n - 1))/checkpoints ]] || bash "$0" "round$((n - 1))"
+  $NICE python train.py --config "configs/shipped.py:round$n" --workdir "runs/shipped_r$n"
   exit 0
 fi
 
