@@ -97,12 +97,24 @@ def test_crop_pair_takes_the_windows_nearest_the_centre_and_its_image():
     crop_pair(pair, 290, np.random.default_rng(0))  # pc2 has 280
 
 
+class Jumps(Dataset):
+  """Pair i: 400 points in a 10 m cube moving 2 m in x, a fifth of them 30 m instead."""
+
+  name = "jumps"
+
+  def __len__(self):
+    return 4
+
+  def load(self, i):
+    rng = np.random.default_rng(i + 1)
+    pc1 = rng.uniform(0, 10, (400, 3)).astype(np.float32)
+    far = rng.random(400) < 0.2  # far beyond any 50-point window
+    flow = np.where(far[:, None], [30.0, 0, 0], [2.0, 0, 0]).astype(np.float32)
+    return Pair(pc1=pc1, pc2=pc1 + flow, flow=flow, mask=np.ones(400, bool), name=f"jump{i}")
+
+
 def test_crop_pair_masks_the_points_whose_flow_leaves_the_pc2_window():
-  rng = np.random.default_rng(1)
-  pc1 = rng.uniform(0, 10, (400, 3)).astype(np.float32)
-  far = rng.random(400) < 0.2  # a fifth of the points jump 30 m, far beyond any 50-point window
-  flow = np.where(far[:, None], [30.0, 0, 0], [2.0, 0, 0]).astype(np.float32)
-  pair = Pair(pc1=pc1, pc2=pc1 + flow, flow=flow, mask=np.ones(400, bool), name="jump")
+  pair = Jumps()[0]
   for seed in range(6):
     plain = crop_pair(pair, 50, np.random.default_rng(seed))
     masked = crop_pair(pair, 50, np.random.default_rng(seed), mask_outside=True)
@@ -128,10 +140,12 @@ def test_loader_crops_windows_at_the_sampled_density():
   # than 16 rows sampled from all 200.
   span = lambda batch: np.ptp(batch["pc1"][:, :, 1], axis=1)
   assert span(a).max() < 60 and span(plain.batch(1)).min() > 100
-  masked = BatchLoader(ds, 2, 16, seed=3, prefetch=0, crop_from=120, crop_mask_outside=True)
-  m = masked.batch(1)
-  assert np.array_equal(m["pc1"], a["pc1"]) and np.array_equal(m["pc2"], a["pc2"])
-  assert np.all(m["mask"] <= a["mask"])  # the option only ever removes points from the loss
+  # crop_mask_outside reaches crop_pair: the same windows, the jumping points out of the loss.
+  loaders = [BatchLoader(Jumps(), 2, 50, seed=3, prefetch=0, crop_from=400, crop_mask_outside=m)
+             for m in (False, True)]
+  kept, masked = (loader.batch(0) for loader in loaders)
+  assert np.array_equal(kept["pc1"], masked["pc1"]) and kept["mask"].all()
+  assert 0 < masked["mask"].sum() < kept["mask"].sum()
   with pytest.raises(ConfigError, match="crop_from"):
     BatchLoader(ds, 2, 16, seed=0, crop_from=8)
 

@@ -59,16 +59,16 @@ def crop_pair(pair: Pair, num_points: int, rng: np.random.Generator,
 
   def nearest(cloud, point):
     d = np.sum((cloud - point) ** 2, axis=1)
-    return np.sort(np.argpartition(d, num_points - 1)[:num_points])
+    idx = np.sort(np.argpartition(d, num_points - 1)[:num_points])
+    return idx, d[idx].max()  # the window and its squared radius
 
-  idx1 = nearest(pair.pc1, pair.pc1[centre])
+  idx1, _ = nearest(pair.pc1, pair.pc1[centre])
   target = pair.pc1[centre] + pair.flow[centre]
-  idx2 = nearest(pair.pc2, target)
+  idx2, radius_sq = nearest(pair.pc2, target)
   mask = take(pair.mask, idx1)
   if mask_outside:
-    radius = np.sqrt(np.max(np.sum((pair.pc2[idx2] - target) ** 2, axis=1)))
     moved_to = pair.pc1[idx1] + pair.flow[idx1]
-    mask = mask & (np.sqrt(np.sum((moved_to - target) ** 2, axis=1)) <= radius)
+    mask = mask & (np.sum((moved_to - target) ** 2, axis=1) <= radius_sq)
   return Pair(pc1=take(pair.pc1, idx1), pc2=take(pair.pc2, idx2), flow=take(pair.flow, idx1),
               mask=mask, name=pair.name)
 
