@@ -9,6 +9,7 @@ function is compiled ahead of the timed calls) divided by the number of real pai
 sampling is seeded, so the same call gives the same numbers.
 """
 
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -18,7 +19,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import checkpointing
+from jaxflow import checkpointing, test_time
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.metrics import METRICS, per_pair_metrics
@@ -47,12 +48,17 @@ def requested_model_fields(config_flag) -> list[str]:
   return sorted(given)
 
 
-def model_predict_fn(model, num_iters: int, refine: bool):
-  """jit (params, pc1, pc2) -> flow B x N x 3: the refined flow, or the last iteration's."""
+def model_predict_fn(model, num_iters: int, refine: bool,
+                     optimise: test_time.Settings = test_time.Settings()):
+  """jit (params, pc1, pc2) -> flow B x N x 3: the refined flow, or the last iteration's; then
+  `optimise.steps` steps of test-time optimisation when > 0 (jaxflow.test_time)."""
 
   def predict(params, pc1_BxNx3, pc2_BxMx3):
     out = model.apply({"params": params}, pc1_BxNx3, pc2_BxMx3, num_iters=num_iters, refine=refine)
-    return out["refined"] if refine else out["flows"][:, -1]
+    flow = out["refined"] if refine else out["flows"][:, -1]
+    if optimise.steps:
+      flow = test_time.optimise_flow(flow, pc1_BxNx3, pc2_BxMx3, optimise)[0]
+    return flow
 
   return jax.jit(predict)
 
@@ -89,13 +95,21 @@ def _run(predict, args, batches, render_dir=None, compiled=None) -> dict:
   return results
 
 
+def _output_name(refine: bool, optimise: test_time.Settings) -> str:
+  return ("refined" if refine else "coarse") + (" + test-time" if optimise.steps else "")
+
+
 def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int, num_iters: int = 32,
-             refine: bool = False, seed: int = 0, render_dir=None) -> dict:
-  """Metrics of the model's flow on every pair of `dataset`, with pairs and ms_per_pair."""
-  predict = model_predict_fn(model, num_iters, refine)
+             refine: bool = False, seed: int = 0, render_dir=None,
+             optimise: test_time.Settings = test_time.Settings()) -> dict:
+  """Metrics of the model's flow on every pair of `dataset`, with pairs and ms_per_pair (the
+  test-time optimisation included when `optimise.steps` > 0)."""
+  predict = model_predict_fn(model, num_iters, refine, optimise)
   batches = eval_batches(dataset, batch_size, num_points, seed=seed)
   results = _run(predict, (params,), batches, render_dir)
-  results["output"] = "refined" if refine else "coarse"
+  results["output"] = _output_name(refine, optimise)
+  if optimise.steps:
+    results["test_time"] = dataclasses.asdict(optimise)
   return results
 
 
@@ -106,10 +120,11 @@ class Evaluator:
   results again (the end-of-run evaluation of a step just evaluated)."""
 
   def __init__(self, model, dataset, *, num_points: int | None, batch_size: int,
-               num_iters: int = 32, refine: bool = False, seed: int = 0):
+               num_iters: int = 32, refine: bool = False, seed: int = 0,
+               optimise: test_time.Settings = test_time.Settings()):
     self.batches = list(eval_batches(dataset, batch_size, num_points, seed=seed))
-    self.predict = model_predict_fn(model, num_iters, refine)
-    self.output = "refined" if refine else "coarse"
+    self.predict = model_predict_fn(model, num_iters, refine, optimise)
+    self.output = _output_name(refine, optimise)
     self.compiled = {}
     self._last = ([], None)  # (parameter leaves, results) of the previous call
 
@@ -204,7 +219,8 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
   """Evaluates a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
   The model comes from the checkpoint as `load_model` gives it; `config.eval` sets points (0: whole
-  clouds), iterations, batch, seed and, unless given, the dataset and split.
+  clouds), iterations, batch, seed, the test-time optimisation (`test_time`; steps 0: off) and,
+  unless given, the dataset and split.
   """
   dataset = dataset or config.eval.dataset
   split = split or config.eval.split
@@ -215,7 +231,8 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
   ds = open_dataset(dataset, split=split)
   results = evaluate(model, params, ds, num_points=config.eval.num_points or None,
                      batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
-                     refine=refine, seed=config.eval.seed, render_dir=render_dir)
+                     refine=refine, seed=config.eval.seed, render_dir=render_dir,
+                     optimise=test_time.settings_from_config(config.eval))
   results.update(dataset=dataset, split=split, checkpoint=str(checkpoint), step=step,
                  num_points=config.eval.num_points, num_iters=config.eval.num_iters)
   print(format_table([(f"{dataset} ({split})", results)]))

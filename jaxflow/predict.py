@@ -28,7 +28,10 @@ evaluate.py, --config (default configs/default.py:eval) only sets evaluation set
 contradicts the checkpoint is an error, except corr_chunk and infer_truncate_k (the correlation
 candidates kept at test time), which stay the checkpoint's unless given as --config.model.FIELD=N
 (e.g. --config.model.infer_truncate_k=64: faster with --full). A stage-2 checkpoint gives the
-refined flow, a stage-1 one the last iteration's.
+refined flow, a stage-1 one the last iteration's. --config.eval.test_time.steps=N (0, off, by default)
+then optimises that flow for N steps against the clouds the model saw, with no ground truth
+(jaxflow.test_time: Chamfer distance to PC2 plus smoothness); the mapping back to every PC1 point
+comes after it.
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
 than the model's neighbourhood config.model.knn) prints one line naming the file and the problem and
@@ -47,7 +50,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import evaluation, geometry
+from jaxflow import evaluation, geometry, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -75,18 +78,20 @@ class Predictor:
     """Fewer points than the model's neighbourhood (config.model.knn) are refused."""
     return int(self.config.model.knn)
 
-  def _fn(self, num_iters: int, corr_chunk: int):
-    key = (num_iters, corr_chunk)
+  def _fn(self, num_iters: int, corr_chunk: int, optimise: test_time.Settings):
+    key = (num_iters, corr_chunk, optimise)
     if key not in self._fns:
       model = self.model if corr_chunk == self.model.corr_chunk else self.model.clone(
         corr_chunk=corr_chunk)
-      self._fns[key] = evaluation.model_predict_fn(model, num_iters, self.refine)
+      self._fns[key] = evaluation.model_predict_fn(model, num_iters, self.refine, optimise)
     return self._fns[key]
 
   def __call__(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
                max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
-               corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2")):
-    """Flow N x 3 of every point of pc1 (see the module docstring for sampling and --full)."""
+               corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
+               optimise: test_time.Settings = test_time.Settings()):
+    """Flow N x 3 of every point of pc1 (see the module docstring for sampling and --full); with
+    `optimise.steps` > 0 the flow of the clouds the model saw is then optimised (jaxflow.test_time)."""
     pc1_Nx3 = _cloud(pc1_Nx3, names[0], self.min_points)
     pc2_Mx3 = _cloud(pc2_Mx3, names[1], self.min_points)
     if num_iters < 1:
@@ -94,7 +99,7 @@ class Predictor:
     if full or not max_points:
       if corr_chunk < 0:
         raise ConfigError(f"corr_chunk must be >= 0, got {corr_chunk}")
-      fn = self._fn(num_iters, corr_chunk)
+      fn = self._fn(num_iters, corr_chunk, optimise)
       return np.asarray(fn(self.params, pc1_Nx3[None], pc2_Mx3[None])[0])
     if max_points < self.min_points:
       raise ConfigError(f"max_points={max_points} is below the model's neighbourhood "
@@ -104,7 +109,7 @@ class Predictor:
     idx2 = sample_indices(len(pc2_Mx3), max_points, rng)[0] if len(pc2_Mx3) > max_points else None
     sub1 = pc1_Nx3 if idx1 is None else pc1_Nx3[idx1]
     sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
-    fn = self._fn(num_iters, self.model.corr_chunk)
+    fn = self._fn(num_iters, self.model.corr_chunk, optimise)
     flow_Sx3 = fn(self.params, sub1[None], sub2[None])[0]
     if idx1 is None:
       return np.asarray(flow_Sx3)
@@ -171,7 +176,8 @@ def _cached_predictor(checkpoint: str | None) -> Predictor:
 def predict_flow(pc1_Nx3, pc2_Mx3, checkpoint=None, num_iters: int = DEFAULT_ITERS,
                  max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
                  corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
-                 predictor: Predictor | None = None) -> np.ndarray:
+                 predictor: Predictor | None = None,
+                 optimise: test_time.Settings = test_time.Settings()) -> np.ndarray:
   """Flow N x 3 (float32) of every point of pc1 towards pc2; the checkpoint is loaded once and kept.
 
   checkpoint None is the shipped one; `predictor` (from load_predictor / fresh_predictor) replaces it.
@@ -179,7 +185,7 @@ def predict_flow(pc1_Nx3, pc2_Mx3, checkpoint=None, num_iters: int = DEFAULT_ITE
   if predictor is None:
     predictor = _cached_predictor(None if checkpoint is None else str(checkpoint))
   return predictor(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points, full=full,
-                   corr_chunk=corr_chunk, seed=seed)
+                   corr_chunk=corr_chunk, seed=seed, optimise=optimise)
 
 
 def write_ply(path, points_Nx3) -> pathlib.Path:
@@ -263,10 +269,11 @@ def main(argv):
 
   pc1, note1 = read_cloud(pc1_path)
   pc2, note2 = read_cloud(pc2_path)
+  optimise = test_time.settings_from_config(config.eval)
   predictor = load_predictor(FLAGS.checkpoint, config, model_fields)
   flow_Nx3 = predictor(pc1, pc2, num_iters=num_iters, max_points=max_points, full=FLAGS.full,
                        corr_chunk=FLAGS["corr-chunk"].value, seed=FLAGS.seed,
-                       names=(pc1_path, pc2_path)).astype(np.float32)
+                       names=(pc1_path, pc2_path), optimise=optimise).astype(np.float32)
   try:
     out.parent.mkdir(parents=True, exist_ok=True)
     with open(out, "wb") as f:
@@ -279,7 +286,9 @@ def main(argv):
     print(f"note: {note2}", file=sys.stderr)
   how = ("whole clouds" if FLAGS.full or not max_points or max(len(pc1), len(pc2)) <= max_points
          else f"sampled to {max_points} points, flow mapped back to every PC1 point")
-  print(f"{out}: flow of {len(pc1)} points ({how}; {num_iters} iterations; {predictor.name})",
+  how += f"; {num_iters} iterations" + (f", then {optimise.steps} test-time steps" if optimise.steps
+                                         else "")
+  print(f"{out}: flow of {len(pc1)} points ({how}; {predictor.name})",
         file=sys.stderr)
   if FLAGS.render:
     from jaxflow import viz  # pylint: disable=import-outside-toplevel

@@ -33,7 +33,7 @@ from flax import traverse_util
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from tqdm import tqdm
 
-from jaxflow import checkpointing, curves, evaluation
+from jaxflow import checkpointing, curves, evaluation, test_time
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError, NonFiniteError
 from jaxflow.losses import refinement_loss, sequence_loss
@@ -465,6 +465,7 @@ def heldout_evaluator(config) -> evaluation.Evaluator:
     build_model(config.model, inference=True), ds, num_points=config.eval.num_points or None,
     batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
     refine=config.train.stage == 2, seed=config.eval.seed,
+    optimise=test_time.settings_from_config(config.eval),
   )
 
 

@@ -22,6 +22,7 @@ OUT=${OUT:-runs/gpu_out}
 WORK=${WORK:-runs/gpu_round}  # the round's workdir (the tests point it elsewhere)
 CARRY=${CARRY:-.gpu_carry/gpu_round.tgz}
 PY=${PYTHON:-python3}
+EVAL=${EVAL:-runs/gpu_round_eval}  # where eval writes (the tests point it elsewhere)
 mkdir -p "$OUT" "$(dirname "$WORK")"
 export PYTHONUNBUFFERED=1
 if ! "$PY" -c "import ml_collections" 2>/dev/null; then
@@ -60,7 +61,7 @@ case "${1:-}" in
     ;;
   eval)
     DATA=${2:-.gpu_data}
-    mkdir -p runs/gpu_round_eval
+    mkdir -p "$EVAL"
     # The round replaces the shipped checkpoint only if better on these validation pairs. Rounds
     # 8-9 showed that 16 pairs are too few (MODEL_CARD.md): 100 here, both measured on this device.
     decide=${DECIDE:-synthetic_mix:100}
@@ -69,13 +70,13 @@ case "${1:-}" in
       [[ $who == round ]] && checkpoint=(--checkpoint "$WORK")
       "$PY" evaluate.py "${checkpoint[@]}" --dataset "$decide" --split val \
         --config.eval.batch_size=2 --config.eval.num_points="${POINTS:-8192}" \
-        --json "runs/gpu_round_eval/decide_val_$who.json"
+        --json "$EVAL/decide_val_$who.json"
     done
-    CHECKPOINT="$WORK" EVAL_OUT=runs/gpu_round_eval bash scripts/train_shipped.sh eval "$DATA"
-    tar -czf "$OUT/gpu_round_eval.tgz" -C runs gpu_round_eval
-    "$PY" - <<'PY'
-import json, pathlib
-for path in sorted(pathlib.Path("runs/gpu_round_eval").glob("*.json")):
+    CHECKPOINT="$WORK" EVAL_OUT="$EVAL" PYTHON="$PY" bash scripts/train_shipped.sh eval "$DATA"
+    tar -czf "$OUT/gpu_round_eval.tgz" -C "$(dirname "$EVAL")" "$(basename "$EVAL")"
+    "$PY" - "$EVAL" <<'PY'
+import json, pathlib, sys
+for path in sorted(pathlib.Path(sys.argv[1]).glob("*.json")):
   print(f"{path.stem:>14}: EPE {json.loads(path.read_text())['epe']:.4f} m")
 PY
     ;;

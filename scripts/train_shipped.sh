@@ -19,6 +19,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 NICE="nice -n 10"  # the dev box's 2 cores are shared
+PY=${PYTHON:-python}  # scripts/gpu_round.sh passes its interpreter (the GPU image has python3)
 
 if [[ "${1:-}" == "eval" ]]; then
   # evaluate.py on the shipped checkpoint (its default) at 8192 points and 32 iterations, and zero
@@ -30,16 +31,18 @@ if [[ "${1:-}" == "eval" ]]; then
   SETTINGS="--config.eval.num_points=$POINTS --config.eval.num_iters=32 --config.eval.batch_size=1"
   [[ -n "${CHECKPOINT:-}" ]] && SETTINGS+=" --checkpoint $CHECKPOINT"
   SETS=("things synthetic_things:50 test" "lidar synthetic_lidar:50 test")
-  [[ -d "$DATA/FlyingThings3D_subset_processed_35m" ]] && \
-    SETS+=("ft3d ft3d:$DATA/FlyingThings3D_subset_processed_35m train")
-  [[ -d "$DATA/KITTI_processed_occ_final" ]] && SETS+=("kitti kitti:$DATA/KITTI_processed_occ_final test")
+  for entry in "ft3d FlyingThings3D_subset_processed_35m train" "kitti KITTI_processed_occ_final test"; do
+    read -r name folder split <<< "$entry"
+    if [[ -d "$DATA/$folder" ]]; then SETS+=("$name $name:$DATA/$folder $split")
+    else echo "no $DATA/$folder: the real $name pairs are not evaluated" >&2; fi
+  done
   for entry in "${SETS[@]}"; do
     read -r name spec split <<< "$entry"
     render=()
     [[ $name == ft3d || $name == kitti ]] && render=(--render "$OUT/views_$name")
-    $NICE python evaluate.py --dataset "$spec" --split "$split" $SETTINGS --json "$OUT/$name.json" \
+    $NICE "$PY" evaluate.py --dataset "$spec" --split "$split" $SETTINGS --json "$OUT/$name.json" \
       "${render[@]}"
-    $NICE python -c "
+    $NICE "$PY" -c "
 import json, sys
 from jaxflow.data import open_dataset
 from jaxflow.evaluation import evaluate_zero_flow
@@ -54,44 +57,44 @@ fi
 
 if [[ "${1:-}" == "round1" ]]; then
   # Round 1 (replaced by round 2, kept for the record): 1024 points sampled from the whole clouds.
-  $NICE python train.py --config configs/shipped.py:round1 --workdir runs/shipped
-  $NICE python train.py --config configs/shipped.py:round1_stage2 --workdir runs/shipped_stage2 \
+  $NICE "$PY" train.py --config configs/shipped.py:round1 --workdir runs/shipped
+  $NICE "$PY" train.py --config configs/shipped.py:round1_stage2 --workdir runs/shipped_stage2 \
     --config.train.init_from=runs/shipped
   exit 0
 fi
 
 if [[ "${1:-}" == "round2" ]]; then
   # Round 2. Warm-up: 1200 steps on 384-point windows of clouds sampled to 8192 points, from scratch.
-  $NICE python train.py --config configs/shipped.py:round2_warmup --workdir runs/shipped_r2_warmup
+  $NICE "$PY" train.py --config configs/shipped.py:round2_warmup --workdir runs/shipped_r2_warmup
   # Stage 1 on 1024-point windows, from the warm-up: 4 iterations to step 1505, then 8
   # (the model is run for 32 at test time) to the config's num_steps. The second line resumes.
-  $NICE python train.py --config configs/shipped.py:round2 --workdir runs/shipped_r2 \
+  $NICE "$PY" train.py --config configs/shipped.py:round2 --workdir runs/shipped_r2 \
     --config.train.num_iters=4 --config.train.num_steps=1505
-  $NICE python train.py --config configs/shipped.py:round2 --workdir runs/shipped_r2
+  $NICE "$PY" train.py --config configs/shipped.py:round2 --workdir runs/shipped_r2
   # Stage 2 of round 2 (replaced by round 3's).
-  $NICE python train.py --config configs/shipped.py:round2_stage2 --workdir runs/shipped_r2_stage2
+  $NICE "$PY" train.py --config configs/shipped.py:round2_stage2 --workdir runs/shipped_r2_stage2
   exit 0
 fi
 
 if [[ "${1:-}" == "round3" ]]; then
   # Round 3: round 2's stage 1 continued with 16 iterations and a decaying rate, then stage 2.
   [[ -d runs/shipped_r2/checkpoints ]] || bash "$0" round2
-  $NICE python train.py --config configs/shipped.py:round3 --workdir runs/shipped_r3
-  $NICE python train.py --config configs/shipped.py:round3_stage2 --workdir runs/shipped_r3_stage2
+  $NICE "$PY" train.py --config configs/shipped.py:round3 --workdir runs/shipped_r3
+  $NICE "$PY" train.py --config configs/shipped.py:round3_stage2 --workdir runs/shipped_r3_stage2
   exit 0
 fi
 
 if [[ "${1:-}" == "round4" ]]; then
   # Round 4: round 3's stage 1 continued on 2048-point windows with 128 candidates, then stage 2.
   [[ -d runs/shipped_r3/checkpoints ]] || bash "$0" round3
-  $NICE python train.py --config configs/shipped.py:round4 --workdir runs/shipped_r4
+  $NICE "$PY" train.py --config configs/shipped.py:round4 --workdir runs/shipped_r4
   # Stage 2 (the graph refinement on the frozen stage-1 network): trained and measured, not shipped,
   # as its 750 steps left the held-out EPE worse than the stage-1 flow (MODEL_CARD.md). It ran as
   # 150 steps (--config.train.num_steps=150), then this line resumed it.
-  $NICE python train.py --config configs/shipped.py:round4_stage2 --workdir runs/shipped_r4_stage2
+  $NICE "$PY" train.py --config configs/shipped.py:round4_stage2 --workdir runs/shipped_r4_stage2
   # The stage-1 flow on the same validation pairs, for the comparison.
   mkdir -p runs/r4_val
-  $NICE python evaluate.py --checkpoint runs/shipped_r4 --dataset synthetic_mix:16 --split val \
+  $NICE "$PY" evaluate.py --checkpoint runs/shipped_r4 --dataset synthetic_mix:16 --split val \
     --config.eval.batch_size=2 --json runs/r4_val/coarse_mix16_val.json
   exit 0
 fi
@@ -101,7 +104,7 @@ if [[ "${1:-}" =~ ^round([5-8])$ ]]; then
   # with the rate 3e-4 decayed to 0; 800, 1000, 1700 and 1600 steps: configs/shipped.py).
   n=${BASH_REMATCH[1]}
   [[ -d runs/shipped_r$((n - 1))/checkpoints ]] || bash "$0" "round$((n - 1))"
-  $NICE python train.py --config "configs/shipped.py:round$n" --workdir "runs/shipped_r$n"
+  $NICE "$PY" train.py --config "configs/shipped.py:round$n" --workdir "runs/shipped_r$n"
   exit 0
 fi
 
@@ -109,7 +112,7 @@ if [[ "${1:-}" != "copy" ]]; then
   # Round 9: round 8's stage 1 continued with the window points whose flow leaves pc2's window
   # masked out of the loss (data.crop_mask_outside), a new data seed, 1400 steps.
   [[ -d runs/shipped_r8/checkpoints ]] || bash "$0" round8
-  $NICE python train.py --config configs/shipped.py --workdir runs/shipped_r9
+  $NICE "$PY" train.py --config configs/shipped.py --workdir runs/shipped_r9
 fi
 
 # Ship the final step of round 9's stage 1 (parameters, config and optimiser state; its refinement
@@ -123,7 +126,7 @@ cp -r "$SHIP/checkpoints/$STEP" "$DEST/$STEP"
 cp $SHIP/config.json "$DEST/config.json"
 # One learning curve for the rounds: each run's steps (training and held-out metrics) are counted on
 # from where the previous run ended; the end-of-run evaluation is the last run's.
-python - "$DEST/learning_curve.png" runs/shipped_r2_warmup runs/shipped_r2 runs/shipped_r3 \
+"$PY" - "$DEST/learning_curve.png" runs/shipped_r2_warmup runs/shipped_r2 runs/shipped_r3 \
   runs/shipped_r4 runs/shipped_r5 runs/shipped_r6 runs/shipped_r7 runs/shipped_r8 runs/shipped_r9 \
   <<'PY'
 import json, pathlib, shutil, sys

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from configs import default
-from jaxflow import checkpointing, evaluation, training
+from jaxflow import checkpointing, evaluation, test_time, training
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError
 from jaxflow.model import PARAMETER_FREE_FIELDS
@@ -81,6 +81,28 @@ def test_model_results_match_a_direct_computation(workdir):
     epes.append(np.sum(err * batch["mask"][0]) / np.sum(batch["mask"][0]))
   np.testing.assert_allclose(got["epe"], np.mean(epes), rtol=1e-4)
   assert got["pairs"] == 3 and got["ms_per_pair"] > 0
+
+
+def test_test_time_optimisation_runs_after_the_model_when_asked(workdir):
+  """config.eval.test_time.steps > 0: the model's flow, then jaxflow.test_time, then the metrics."""
+  config = default.get_config("eval")
+  config.eval.num_points, config.eval.num_iters, config.eval.batch_size = 64, 2, 2
+  config.eval.test_time.steps = 15
+  got = evaluation.evaluate_checkpoint(workdir, config, "synthetic_lidar:3", "test")
+  assert got["output"] == "coarse + test-time" and got["test_time"]["steps"] == 15
+  state, saved, _ = training.restore_checkpoint(workdir)
+  model = training.build_model(saved.model)
+  apply = jax.jit(lambda p, a, b: model.apply({"params": p}, a, b, num_iters=2, refine=False))
+  settings = test_time.Settings(steps=15)
+  epes, plain = [], []
+  for batch in eval_batches(open_dataset("synthetic_lidar:3", split="test"), 1, 64, seed=0):
+    flow = apply(state.params, batch["pc1"], batch["pc2"])["flows"][:, -1]
+    optimised = test_time.optimise_flow(flow, batch["pc1"], batch["pc2"], settings)[0]
+    for out, f in ((epes, optimised), (plain, flow)):
+      err = np.linalg.norm(np.asarray(f[0]) - batch["flow"][0], axis=-1)
+      out.append(np.sum(err * batch["mask"][0]) / np.sum(batch["mask"][0]))
+  np.testing.assert_allclose(got["epe"], np.mean(epes), rtol=1e-4)
+  assert abs(np.mean(epes) - np.mean(plain)) > 1e-4  # the optimisation changed the flow
 
 
 def test_infer_truncate_k_sets_the_candidates_when_evaluating_only(workdir):

@@ -1,5 +1,5 @@
 """scripts/gpu_round.sh on the CPU at toy sizes: a round cut by time saves its step and packs it,
-and a fresh machine (no workdir) resumes from the carried pack."""
+a fresh machine (no workdir) resumes from the carried pack, and eval measures what decides."""
 
 import json
 import os
@@ -11,14 +11,16 @@ from pathlib import Path
 import pytest
 
 from jaxflow import evaluation
+from tests.conftest import SHARED
 
 REPO = Path(__file__).absolute().parent.parent
 TOY = ["--config.data.num_points=64", "--config.model.truncate_k=16", "--config.train.num_iters=2"]
 
 
-def gpu_round(tmp_path, *args):
-  env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHON=sys.executable, OUT=str(tmp_path / "out"),
-             WORK=str(tmp_path / "work"), CARRY=str(tmp_path / "carry.tgz"))
+def gpu_round(tmp_path, *args, **env):
+  env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHON": sys.executable, "OUT": str(tmp_path / "out"),
+         "WORK": str(tmp_path / "work"), "CARRY": str(tmp_path / "carry.tgz"),
+         "EVAL": str(tmp_path / "eval"), **env}
   return subprocess.run(["bash", "scripts/gpu_round.sh", *args], cwd=REPO, env=env,
                         capture_output=True, text=True, timeout=300)
 
@@ -49,6 +51,41 @@ def test_time_cut_round_packs_and_resumes_from_the_pack(tmp_path):
   metrics = (tmp_path / "work" / "metrics.jsonl").read_text().splitlines()
   steps = [json.loads(line)["step"] for line in metrics]
   assert steps[-1] == first + 2 and steps == sorted(steps)
+
+
+def test_eval_measures_round_and_shipped_on_the_same_val_pairs(tmp_path):
+  if not evaluation.SHIPPED_CHECKPOINT.exists():
+    pytest.skip("no shipped checkpoint to evaluate")
+  # The GPU image has python3 and maybe no `python`: a bare `python` anywhere in the scripts fails.
+  fake = tmp_path / "bin"
+  fake.mkdir()
+  (fake / "python").write_text("#!/bin/sh\necho 'bare python called' >&2\nexit 97\n")
+  (fake / "python").chmod(0o755)
+  data = SHARED / "data"
+  # The round is the shipped checkpoint itself, so both deciding numbers must agree exactly.
+  proc = gpu_round(tmp_path, "eval", str(data), WORK=str(evaluation.SHIPPED_CHECKPOINT),
+                   POINTS="64", DECIDE="synthetic_mix:2",
+                   PATH=f"{fake}{os.pathsep}{os.environ['PATH']}")
+  assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+  decide = {who: json.loads((tmp_path / "eval" / f"decide_val_{who}.json").read_text())
+            for who in ("round", "shipped")}
+  for result in decide.values():
+    assert (result["dataset"], result["split"], result["pairs"], result["num_points"]) == (
+      "synthetic_mix:2", "val", 2, 64)
+  assert decide["round"]["epe"] == decide["shipped"]["epe"]
+  sets = ["things", "lidar"]
+  for name, folder in [("ft3d", "FlyingThings3D_subset_processed_35m"),
+                       ("kitti", "KITTI_processed_occ_final")]:
+    if (data / folder).is_dir():
+      sets.append(name)
+    else:  # said, not skipped silently
+      assert f"the real {name} pairs are not evaluated" in proc.stderr
+  for name in sets:
+    for suffix in ("", "_zero"):
+      assert json.loads((tmp_path / "eval" / f"{name}{suffix}.json").read_text())["epe"] > 0
+  with tarfile.open(tmp_path / "out" / "gpu_round_eval.tgz") as tar:
+    packed = {Path(name).name for name in tar.getnames()}
+  assert {"decide_val_round.json", "decide_val_shipped.json", "things.json"} <= packed
 
 
 def test_usage_error(tmp_path):

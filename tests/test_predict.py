@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from configs import default
-from jaxflow import checkpointing, predict, training
+from jaxflow import checkpointing, predict, test_time, training
 from jaxflow.data import open_dataset, read_points
 from jaxflow.data.sampling import sample_pair
 from jaxflow.model import build_model
@@ -95,6 +95,10 @@ def runs(files, workdir):
                 "--max-points", 100),
     "candidates": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_k4.npy", *ck, "--iters", 4,
                        "--config.model.infer_truncate_k=4"),  # without a --config file
+    "test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_tt.npy", *ck, "--iters", 4,
+                      "--config.eval.test_time.steps=20"),
+    "bad_test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o9.npy", *ck,
+                          "--config.eval.test_time.learning_rate=-1"),
     "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *ck,
                          "--config", os.path.join(ROOT, "configs", "default.py") + ":smoke"),
   }
@@ -118,6 +122,7 @@ def runs(files, workdir):
   ("few", ["few.npy", "only 5 points", "config.model.knn"]),
   ("bad_checkpoint", ["nothing_here"]),
   ("config_contradicts", ["contradicts the checkpoint"]),
+  ("bad_test_time", ["config.eval.test_time", "learning_rate"]),
 ])
 def test_broken_input_is_one_line_and_exit_2(runs, case, words):
   rc, stdout, stderr = runs[case]
@@ -152,6 +157,16 @@ def test_cli_sets_the_test_time_candidates(runs, files, predictor, pair):
   four = predict.Predictor(build_model(config.model), predictor.params, config, refine=True)
   flow = np.load(files / "flow_k4.npy")
   np.testing.assert_allclose(flow, four(pair[0], pair[1], num_iters=4), atol=1e-4)
+  assert not np.allclose(flow, np.load(files / "flow_npy.npy"), atol=1e-3)
+
+
+def test_cli_optimises_the_flow_at_test_time(runs, files, predictor, pair):
+  rc, _, stderr = runs["test_time"]
+  assert rc == 0, stderr
+  assert "then 20 test-time steps" in stderr
+  flow = np.load(files / "flow_tt.npy")
+  api = predictor(pair[0], pair[1], num_iters=4, optimise=test_time.Settings(steps=20))
+  np.testing.assert_allclose(flow, api, atol=1e-4)
   assert not np.allclose(flow, np.load(files / "flow_npy.npy"), atol=1e-3)
 
 
