@@ -30,11 +30,11 @@ class Settings:
   chunk: int = 2048  # rows of the nearest-point search built at a time (memory ~ chunk x M)
 
   def __post_init__(self):
-    if not isinstance(self.refresh, int) or self.refresh < 1:
-      raise ValueError(f"test-time refresh must be an integer >= 1, got {self.refresh!r}")
-    for name in ("steps", "neighbours", "chunk"):
-      if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
-        raise ValueError(f"test-time {name} must be an integer >= 0, got {getattr(self, name)!r}")
+    # neighbours >= 1: the smoothness term averages over them (none would make it NaN).
+    for name, least in (("steps", 0), ("neighbours", 1), ("refresh", 1), ("chunk", 0)):
+      if not isinstance(getattr(self, name), int) or getattr(self, name) < least:
+        raise ValueError(f"test-time {name} must be an integer >= {least}, "
+                         f"got {getattr(self, name)!r}")
     for name in ("learning_rate", "smoothness", "truncate"):
       if not getattr(self, name) >= 0:
         raise ValueError(f"test-time {name} must be >= 0, got {getattr(self, name)!r}")

@@ -95,6 +95,10 @@ def test_settings_from_config():
   with pytest.raises(ConfigError, match="refresh"):
     test_time.settings_from_config(eval_config)
   eval_config.test_time.refresh = 10
+  eval_config.test_time.neighbours = 0  # the smoothness term would average over none: NaN
+  with pytest.raises(ConfigError, match="neighbours must be an integer >= 1"):
+    test_time.settings_from_config(eval_config)
+  eval_config.test_time.neighbours = 8
   eval_config.test_time.stepz = 30
   with pytest.raises(ConfigError, match="unknown field.*stepz"):
     test_time.settings_from_config(eval_config)
