@@ -172,7 +172,11 @@ def open_checkpoint(path) -> tuple[Checkpoints, int, ml_collections.ConfigDict]:
   """(read-only Checkpoints, step, config) of a workdir, checkpoints folder or step folder."""
   directory, step = locate(path)
   ckpts = Checkpoints(directory, max_to_keep=None, create=False)
-  return ckpts, step, ckpts.restore_config(step)
+  try:
+    return ckpts, step, ckpts.restore_config(step)
+  except CheckpointError:
+    ckpts.close()
+    raise
 
 
 def write_config(config: ml_collections.ConfigDict, workdir) -> Path:

@@ -27,8 +27,30 @@ def fail(message: str):
   sys.exit(EXIT_USER_ERROR)
 
 
+def _drop_closed_loop_reports():
+  """Drops the "Event loop is closed" errors that orbax's abandoned reads report.
+
+  When one array of a checkpoint cannot be read, orbax raises (a CheckpointError here) and closes
+  its event loop while tensorstore's reads of the other arrays are still running; each of them then
+  reports a RuntimeError into the closed loop as an unraisable exception, a traceback after the
+  one-line error. The failure itself has been raised; these reports add nothing.
+  """
+  previous = sys.unraisablehook
+  if getattr(previous, "drops_closed_loop_reports", False):
+    return  # installed by an earlier call
+
+  def hook(unraisable):
+    e = unraisable.exc_value
+    if not (isinstance(e, RuntimeError) and str(e) == "Event loop is closed"):
+      previous(unraisable)
+
+  hook.drops_closed_loop_reports = True
+  sys.unraisablehook = hook
+
+
 def guard(main: Callable[..., Any], *args, **kwargs):
   """main(*args, **kwargs), with a JaxflowError turned into one line and exit code 2."""
+  _drop_closed_loop_reports()
   try:
     return main(*args, **kwargs)
   except JaxflowError as e:
