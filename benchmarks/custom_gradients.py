@@ -24,8 +24,8 @@ def plain_neighbour_max(support, unit_v, unit_e, nbr, similarity):
   return jnp.max(layers.edge_similarity(support, unit_v, unit_e, nbr, similarity), axis=2)
 
 
-def plain_cell_means(corr, index, cells, one_cell_at_a_time):
-  sums, counts = correlation._cell_sums(corr, index, cells, one_cell_at_a_time)
+def plain_cell_means(corr, index, cells, scatter):
+  sums, counts = correlation._cell_sums(corr, index, cells, scatter)
   return sums / jnp.maximum(counts, 1.0)
 
 

@@ -1,11 +1,13 @@
-"""The voxel branch's two forms (jaxflow.correlation.voxel_means) in the whole model, one process.
+"""The voxel branch's forms (jaxflow.correlation.voxel_means) in the whole model, one process.
 
     python -m benchmarks.voxel_cells --points 8192 --candidates 512 --iters 32
 
 "all cells" compares every candidate with the 27 cells at once (the default off the CPU); "one cell
-at a time" loops over the cells (the CPU's default). For each: the compiled program's temporary
-memory (XLA's memory_analysis, the same on every run), the median wall time after compilation,
-and the same for a training step (batch 2, 8 iterations, sequence loss) with --train.
+at a time" loops over the cells (the CPU's default until 2026-11-25, kept here as the baseline);
+"scatter" adds every candidate into its cell in one scatter (the CPU's default now). For each: the
+compiled program's temporary memory (XLA's memory_analysis, the same on every run), the median wall
+time after compilation, and the same for a training step (batch 2, 8 iterations, sequence loss)
+with --train.
 """
 
 import functools
@@ -18,7 +20,21 @@ from benchmarks.model_speed import CONFIGS, device_line, model_parser, timed
 from jaxflow import correlation, losses
 from jaxflow.model import build_model
 
-FORMS = {"all cells": False, "one cell at a time": True}
+
+def one_cell_at_a_time(corr_BxNxK, index_BxNxK, cells, scatter):
+  """The former CPU form of `correlation._cell_sums`: a loop over the cells."""
+  def sums_of(r):
+    member_BxNxK = index_BxNxK == r
+    return (jnp.sum(jnp.where(member_BxNxK, corr_BxNxK, 0.0), axis=2),
+            jnp.sum(member_BxNxK, axis=2).astype(corr_BxNxK.dtype))
+  sums_RxBxN, counts_RxBxN = jax.lax.map(sums_of, jnp.arange(cells, dtype=index_BxNxK.dtype))
+  return jnp.moveaxis(sums_RxBxN, 0, -1), jnp.moveaxis(counts_RxBxN, 0, -1)
+
+
+# name: (voxel_means' scatter flag, the cell sums it runs)
+FORMS = {"all cells": (False, correlation._cell_sums),
+         "one cell at a time": (True, one_cell_at_a_time),
+         "scatter": (True, correlation._cell_sums)}
 
 
 def temp_mib(jitted, *args):
@@ -40,12 +56,13 @@ def main():
   variables = jax.jit(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, num_iters=1))(pc1, pc2)
   b1 = jnp.concatenate([pc1, pc1 + 1.0])
   gt = jnp.full(b1.shape, 0.1)
-  original = correlation.voxel_means
+  originals = correlation.voxel_means, correlation._cell_sums
   print(f"{args.config}, {args.points} points, {args.candidates} candidates")
   try:
-    for name, flag in FORMS.items():
-      # The model calls correlation.voxel_means by name: pin the form for this trace.
-      correlation.voxel_means = functools.partial(original, one_cell_at_a_time=flag)
+    for name, (flag, cell_sums) in FORMS.items():
+      # The model calls these by name: pin the form for this trace.
+      correlation.voxel_means = functools.partial(originals[0], scatter=flag)
+      correlation._cell_sums = cell_sums
       forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters)["flows"])
       mem, t = temp_mib(forward, variables, pc1, pc2), timed(forward, variables, pc1, pc2,
                                                              repeats=args.repeats)
@@ -60,7 +77,7 @@ def main():
         line += f" | training step (batch 2, 8 iters) {mem:7.0f} MiB temp, {t:7.2f} s"
       print(line, flush=True)
   finally:
-    correlation.voxel_means = original
+    correlation.voxel_means, correlation._cell_sums = originals
 
 
 if __name__ == "__main__":

@@ -37,13 +37,14 @@ def truncated_correlation(f1_BxNxC, f2_BxMxC, xyz2_BxMx3, k: int, chunk: int = 0
 
 
 def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3,
-                one_cell_at_a_time: bool | None = None):
+                scatter: bool | None = None):
   """Mean correlation of the candidates in each of the resolution^3 cells around the estimate.
 
   offset = candidate xyz - estimate. cell = round(offset / scale); a candidate is inside when
   every |cell| <= resolution // 2; cells are numbered (dx * R + dy) * R + dz with d = cell + R // 2.
-  `one_cell_at_a_time` (None: on the CPU backend only) loops over the cells instead of comparing
-  against all of them at once: the same sums, with B x N x K temporaries instead of B x N x K x R^3.
+  `scatter` (None: on the CPU backend only) adds each candidate into its cell with one scatter
+  instead of comparing it with every cell: the same sums in another order, with B x N x K
+  temporaries instead of B x N x K x R^3.
   """
   half = resolution // 2
   cell_BxNxKx3 = jnp.round(jax.lax.stop_gradient(offset_BxNxKx3) / scale)
@@ -53,44 +54,48 @@ def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3,
   # The index is what the gradient keeps of every iteration: int8 where the cells fit.
   index_BxNxK = jnp.where(inside_BxNxK, index_BxNxK, -1).astype(
     jnp.int8 if resolution**3 < 128 else jnp.int32)
-  if one_cell_at_a_time is None:
-    # XLA's CPU backend materialises the all-cells comparison: 2.7 GB of temporaries for one
-    # 8192-point pair with 512 candidates, 0.8 GB one cell at a time (benchmarks/MODEL.md).
-    one_cell_at_a_time = jax.default_backend() == "cpu"
-  return cell_means(corr_BxNxK, index_BxNxK, resolution**3, one_cell_at_a_time)
+  if scatter is None:
+    # XLA's CPU backend materialises the all-cells comparison (2.7 GB of temporaries for one
+    # 8192-point pair with 512 candidates), and runs its scatter in one pass; other backends fuse
+    # the comparison, and a GPU scatter adds in a varying order (benchmarks/MODEL.md).
+    scatter = jax.default_backend() == "cpu"
+  return cell_means(corr_BxNxK, index_BxNxK, resolution**3, scatter)
 
 
-def _cell_sums(corr_BxNxK, index_BxNxK, cells: int, one_cell_at_a_time: bool):
+def _cell_sums(corr_BxNxK, index_BxNxK, cells: int, scatter: bool):
   """Sums and counts B x N x cells of the values in each cell."""
-  if one_cell_at_a_time:
-    def sums_of(r):
-      member_BxNxK = index_BxNxK == r
-      return (jnp.sum(jnp.where(member_BxNxK, corr_BxNxK, 0.0), axis=2),
-              jnp.sum(member_BxNxK, axis=2).astype(corr_BxNxK.dtype))
-    sums_RxBxN, counts_RxBxN = jax.lax.map(sums_of, jnp.arange(cells, dtype=index_BxNxK.dtype))
-    return jnp.moveaxis(sums_RxBxN, 0, -1), jnp.moveaxis(counts_RxBxN, 0, -1)
+  if scatter:
+    b, n, k = corr_BxNxK.shape
+    # Row (b, n) owns slots (b * N + n) * (cells + 1) + cell; the last slot takes the outsiders.
+    slot_BxNxK = jnp.where(index_BxNxK >= 0, index_BxNxK.astype(jnp.int32), cells)
+    slot_BxNxK = slot_BxNxK + (cells + 1) * jnp.arange(b * n, dtype=jnp.int32).reshape(b, n, 1)
+    # Value and count in one scatter: half the passes of two.
+    values_Px2 = jnp.stack([corr_BxNxK.reshape(-1), jnp.ones(b * n * k, corr_BxNxK.dtype)], -1)
+    sums = jnp.zeros((b * n * (cells + 1), 2), corr_BxNxK.dtype).at[slot_BxNxK.reshape(-1)].add(
+      values_Px2).reshape(b, n, cells + 1, 2)
+    return sums[..., :cells, 0], sums[..., :cells, 1]
   member_BxNxKxR = index_BxNxK[..., None] == jnp.arange(cells, dtype=index_BxNxK.dtype)
   sums_BxNxR = jnp.sum(jnp.where(member_BxNxKxR, corr_BxNxK[..., None], 0.0), axis=2)
   return sums_BxNxR, jnp.sum(member_BxNxKxR, axis=2).astype(corr_BxNxK.dtype)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
-def cell_means(corr_BxNxK, index_BxNxK, cells: int, one_cell_at_a_time: bool):
+def cell_means(corr_BxNxK, index_BxNxK, cells: int, scatter: bool):
   """Mean of the values in each cell (0 when empty): B x N x cells; index -1 is in no cell.
 
   The gradient of a candidate's value is its cell's cotangent / count, so it keeps only the index
   and the counts; autodiff of the sums would keep the B x N x K x cells memberships of every
   iteration.
   """
-  return _cell_means_fwd(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time)[0]
+  return _cell_means_fwd(corr_BxNxK, index_BxNxK, cells, scatter)[0]
 
 
-def _cell_means_fwd(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time):
-  sums_BxNxR, counts_BxNxR = _cell_sums(corr_BxNxK, index_BxNxK, cells, one_cell_at_a_time)
+def _cell_means_fwd(corr_BxNxK, index_BxNxK, cells, scatter):
+  sums_BxNxR, counts_BxNxR = _cell_sums(corr_BxNxK, index_BxNxK, cells, scatter)
   return sums_BxNxR / jnp.maximum(counts_BxNxR, 1.0), (index_BxNxK, counts_BxNxR)
 
 
-def _cell_means_bwd(cells, one_cell_at_a_time, residuals, g_BxNxR):
+def _cell_means_bwd(cells, scatter, residuals, g_BxNxR):
   index_BxNxK, counts_BxNxR = residuals
   per_value_BxNxR = g_BxNxR / jnp.maximum(counts_BxNxR, 1.0)
   g_BxNxK = jnp.take_along_axis(per_value_BxNxR, jnp.maximum(index_BxNxK, 0).astype(jnp.int32),

@@ -122,24 +122,25 @@ def correlation_inputs(seed, n=30, k=40):
 
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("scale", [0.25, 0.5, 1.0])
-@pytest.mark.parametrize("one_cell_at_a_time", [False, True])  # other backends / the CPU's
-def test_voxel_cells_match_loop(seed, scale, one_cell_at_a_time):
-  corr, cand, coords = correlation_inputs(seed)
-  offset = jnp.asarray(cand - coords[:, None])[None]
-  got = voxel_means(jnp.asarray(corr)[None], offset, scale, one_cell_at_a_time=one_cell_at_a_time)
-  want = ref.voxel_cells(corr, cand, coords, scale)
-  close(got[0], want)
-  assert np.any(want == 0) and np.any(want != 0)  # both empty and filled cells were exercised
-  # Gradient of sum(means^2): d/d corr[i, a] = 2 mean / count of a's cell, 0 outside the cube.
-  def loss(c):
-    return jnp.sum(voxel_means(c, offset, scale, one_cell_at_a_time=one_cell_at_a_time) ** 2)
-
-  index = ref.voxel_index(cand, coords, scale)
-  counts = np.stack([np.bincount(row[row >= 0], minlength=27) for row in index])
-  rows = np.arange(len(index))[:, None]
-  cell = np.maximum(index, 0)
-  want_grad = np.where(index >= 0, 2 * want[rows, cell] / np.maximum(counts[rows, cell], 1), 0.0)
-  close(jax.grad(loss)(jnp.asarray(corr)[None])[0], want_grad)
+@pytest.mark.parametrize("scatter", [False, True])  # other backends / the CPU's
+def test_voxel_cells_match_loop(seed, scale, scatter):
+  # A batch of two pairs: the scatter form numbers the cells of every (pair, point) row apart.
+  inputs = [correlation_inputs(seed), correlation_inputs(seed + 100)]
+  corr = jnp.asarray(np.stack([c for c, _, _ in inputs]))
+  offset = jnp.asarray(np.stack([cand - coords[:, None] for _, cand, coords in inputs]))
+  got = voxel_means(corr, offset, scale, scatter=scatter)
+  grad = jax.grad(lambda c: jnp.sum(voxel_means(c, offset, scale, scatter=scatter) ** 2))(corr)
+  for b, (corr_b, cand, coords) in enumerate(inputs):
+    want = ref.voxel_cells(corr_b, cand, coords, scale)
+    close(got[b], want)
+    assert np.any(want == 0) and np.any(want != 0)  # both empty and filled cells were exercised
+    # Gradient of sum(means^2): d/d corr[i, a] = 2 mean / count of a's cell, 0 outside the cube.
+    index = ref.voxel_index(cand, coords, scale)
+    counts = np.stack([np.bincount(row[row >= 0], minlength=27) for row in index])
+    rows = np.arange(len(index))[:, None]
+    cell = np.maximum(index, 0)
+    close(grad[b], np.where(index >= 0, 2 * want[rows, cell] / np.maximum(counts[rows, cell], 1),
+                            0.0))
 
 
 def test_voxel_cells_validity_cube_and_empty():
