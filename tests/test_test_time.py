@@ -87,18 +87,15 @@ def test_settings_from_config():
   assert test_time.settings_from_config(ml_collections.ConfigDict({"num_points": 8})).steps == 0
   eval_config.test_time.steps = 30
   assert test_time.settings_from_config(eval_config).steps == 30
-  eval_config.test_time.steps = -1
-  with pytest.raises(ConfigError, match="config.eval.test_time: test-time steps"):
-    test_time.settings_from_config(eval_config)
-  eval_config.test_time.steps = 30
-  eval_config.test_time.refresh = 0
-  with pytest.raises(ConfigError, match="refresh"):
-    test_time.settings_from_config(eval_config)
-  eval_config.test_time.refresh = 10
-  eval_config.test_time.neighbours = 0  # the smoothness term would average over none: NaN
-  with pytest.raises(ConfigError, match="neighbours must be an integer >= 1"):
-    test_time.settings_from_config(eval_config)
-  eval_config.test_time.neighbours = 8
+  # One bad field at a time (neighbours 0: the smoothness term would average over none, NaN).
+  for field, bad, message in [("steps", -1, "config.eval.test_time: test-time steps"),
+                              ("refresh", 0, "refresh"),
+                              ("neighbours", 0, "neighbours must be an integer >= 1")]:
+    good = eval_config.test_time[field]
+    eval_config.test_time[field] = bad
+    with pytest.raises(ConfigError, match=message):
+      test_time.settings_from_config(eval_config)
+    eval_config.test_time[field] = good
   eval_config.test_time.stepz = 30
   with pytest.raises(ConfigError, match="unknown field.*stepz"):
     test_time.settings_from_config(eval_config)
