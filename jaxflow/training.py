@@ -12,6 +12,7 @@ is an `optax.multi_transform` whose frozen group is `set_to_zero` (no optimiser 
 runs with `freeze_backbone=True`.
 """
 
+import contextlib
 import functools
 import json
 import math
@@ -211,16 +212,13 @@ def restore_checkpoint(path, step: int | None = None):
   optimiser are rebuilt from the config stored in the checkpoint."""
   ckpts, latest, config = checkpointing.open_checkpoint(path)
   step = latest if step is None else step
-  try:  # closed on errors too: a notebook goes on after a CheckpointError
+  with contextlib.closing(ckpts):  # on errors too: a notebook goes on after a CheckpointError
     try:
       model = build_model(config.model)
     except (ValueError, TypeError) as e:
       raise CheckpointError(f"{ckpts.step_dir(step)}: its config does not build a model ({e})")
     target = abstract_train_state(model, make_optimizer(config, 1), config)
-    state = ckpts.restore_state(step, target)
-  finally:
-    ckpts.close()
-  return state, config, step
+    return ckpts.restore_state(step, target), config, step
 
 
 def _load_init_params(params, config):
