@@ -5,7 +5,7 @@ r"""Evaluates a checkpoint on a dataset and prints the paper's table (EPE, AccS,
         --dataset kitti:data/KITTI_processed_occ_final --json kitti.json
 
 The model comes from the checkpoint (workdir, checkpoints folder or step folder; default: the shipped
-checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192 points,
+jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192 points,
 32 iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; --dataset and
 --split default to config.eval.dataset and config.eval.split.
 """

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from configs import ablation, default, pvraft
+from jaxflow.configs import ablation, default, pvraft
 from jaxflow import losses
 from jaxflow.model import build_model
 

@@ -26,9 +26,9 @@ from jaxflow.metrics import METRICS, per_pair_metrics
 from jaxflow.model import build_model
 
 # The shipped checkpoint, used by evaluate.py when --checkpoint is not given.
-SHIPPED_CHECKPOINT = Path(__file__).absolute().parent.parent / "checkpoints" / "jaxflow_synthetic"
+SHIPPED_CHECKPOINT = Path(__file__).absolute().parent / "checkpoints" / "jaxflow_synthetic"
 # The settings evaluate.py and predict use when no --config is given (8192 points, 32 iterations).
-EVAL_CONFIG = f"{Path(__file__).absolute().parent.parent / 'configs' / 'default.py'}:eval"
+EVAL_CONFIG = f"{Path(__file__).absolute().parent / 'configs' / 'default.py'}:eval"
 # Model fields that change neither the parameters nor the training: evaluation settings
 # (corr_chunk, remat_iterations: memory, not results; infer_truncate_k: the correlation candidates
 # at test time).

@@ -153,7 +153,7 @@ def main(argv=None):
 
   import jax
   import jax.numpy as jnp
-  from configs import pvraft
+  from jaxflow.configs import pvraft
   from jaxflow import checkpointing
   from jaxflow.model import build_model
 

@@ -21,7 +21,7 @@ nearest sampled pc1 point (Euclidean; a sampled point keeps its own). With --ful
 the whole clouds instead, with the correlation and kNN built `corr_chunk` pc1 rows at a time, so
 memory stays linear in the number of points (time grows as N x M).
 
-Model. The checkpoint (default: the shipped `checkpoints/jaxflow_synthetic/` of this repository, found
+Model. The checkpoint (default: the shipped `jaxflow/checkpoints/jaxflow_synthetic/` of this repository, found
 from the package, not the working directory) carries its config: the model is built from it. As in
 evaluate.py, --config (default configs/default.py:eval) only sets evaluation settings
 (config.eval.num_points, config.eval.num_iters: 32); a model field of an explicit --config file that
@@ -40,7 +40,6 @@ exits with code 2.
 
 import dataclasses
 import functools
-import os
 import pathlib
 import sys
 import warnings
@@ -225,7 +224,7 @@ def _define_flags():
     "config", evaluation.EVAL_CONFIG, "Evaluation settings (config.eval.num_points, "
     "config.eval.num_iters); the model comes from the checkpoint.", lock_config=True)
   flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "
-                      "shipped checkpoints/jaxflow_synthetic/).")
+                      "shipped jaxflow/checkpoints/jaxflow_synthetic/).")
   flags.DEFINE_string("out", None, "Write the flow here (.npy, float32, one row per point of PC1).")
   flags.DEFINE_integer("iters", None, "Flow iterations (default: config.eval.num_iters, 32).")
   flags.DEFINE_integer("max-points", None, "Clouds above this size are sampled to it and the flow is "
@@ -298,8 +297,6 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  # Config files import `configs` from the repository root, wherever the command runs.
-  sys.path.insert(0, os.fspath(pathlib.Path(__file__).absolute().parent.parent))
   _define_flags()
   from jaxflow import cli  # pylint: disable=import-outside-toplevel
   cli.run(main)

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Trains the shipped checkpoint checkpoints/jaxflow_synthetic/ (configs/shipped.py) and copies it in.
+# Trains the shipped checkpoint jaxflow/checkpoints/jaxflow_synthetic/ (configs/shipped.py) and copies it in.
 # Each round is the exact command that was run; rerunning a train.py line on the same workdir resumes
 # from its newest checkpoint (a later round may raise --config.train.num_steps). See MODEL_CARD.md.
 #
@@ -119,7 +119,7 @@ fi
 # parameters are untrained and unused: a stage-1 checkpoint gives the coarse flow).
 SHIP=runs/shipped_r9
 STEP=$(ls $SHIP/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
-DEST=checkpoints/jaxflow_synthetic
+DEST=jaxflow/checkpoints/jaxflow_synthetic
 mkdir -p "$DEST"
 find "$DEST" -mindepth 1 -maxdepth 1 -name '[0-9]*' -type d -exec rm -rf {} +
 cp -r "$SHIP/checkpoints/$STEP" "$DEST/$STEP"

@@ -12,7 +12,7 @@ import jax
 import numpy as np
 import pytest
 
-from configs import default
+from jaxflow.configs import default
 from jaxflow import checkpointing, evaluation, test_time, training
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError
@@ -240,7 +240,7 @@ def test_cli_bad_checkpoint_is_one_line_and_exit_2(workdir, tmp_path):
 
 
 def test_shipped_recipe_configs_build_the_shipped_model():
-  from configs import shipped
+  from jaxflow.configs import shipped
 
   if not evaluation.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")

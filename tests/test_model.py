@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from configs import ablation, default, pvraft
+from jaxflow.configs import ablation, default, pvraft
 from jaxflow import geometry, losses
 from jaxflow.import_pvraft import convert_state_dict, import_into
 from jaxflow.model import build_model

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from configs import default
+from jaxflow.configs import default
 from jaxflow import checkpointing, predict, test_time, training
 from jaxflow.data import open_dataset, read_points
 from jaxflow.data.sampling import sample_pair
@@ -214,7 +214,7 @@ def test_api_rejects_small_or_malformed_clouds(predictor, pair):
 
 def test_default_checkpoint_is_the_shipped_one(pair):
   assert predict.SHIPPED_CHECKPOINT == predict.evaluation.SHIPPED_CHECKPOINT
-  assert predict.SHIPPED_CHECKPOINT.parent.parent == pathlib.Path(ROOT)
+  assert predict.SHIPPED_CHECKPOINT.parent.parent == pathlib.Path(ROOT) / "jaxflow"
   if not predict.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")
   flow = predict.predict_flow(pair[0][:64], pair[1][:64], num_iters=2)

@@ -8,7 +8,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from configs import default
+from jaxflow.configs import default
 from jaxflow import geometry, test_time
 from jaxflow.errors import ConfigError
 

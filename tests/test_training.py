@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from flax import traverse_util
 
-from configs import default, stage2_synthetic
+from jaxflow.configs import default, stage2_synthetic
 from jaxflow import checkpointing, evaluation, training
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError, DataError, NonFiniteError
@@ -277,7 +277,7 @@ def test_broken_data_stops_or_is_skipped_and_reported(tmp_path, capsys):
 DATA_PARALLEL = textwrap.dedent("""
   import sys
   import jax, numpy as np
-  from configs import default
+  from jaxflow.configs import default
   from jaxflow import training
   from jaxflow.data import BatchLoader, open_dataset
   from jaxflow.model import build_model

@@ -8,7 +8,7 @@ with the stage-1 network frozen, then evaluated (refined flow) on the held-out s
 `:smoke` gives the smoke-sized version (stage 1 from configs/default.py:smoke).
 """
 
-from configs import default
+from jaxflow.configs import default
 
 
 def get_config(arg: str = ""):

@@ -8,7 +8,7 @@ The argument is the dataset root (default data/FlyingThings3D_subset_processed_3
 model is evaluated on the FT3D test set (val/, 3824 pairs) with 32 iterations.
 """
 
-from configs import default
+from jaxflow.configs import default
 
 DEFAULT_ROOT = "data/FlyingThings3D_subset_processed_35m"
 

@@ -8,13 +8,13 @@ Cut by time, not by steps (a device call lasts 10 minutes at most), hence the co
 large num_steps. Not run yet: no GPU has been lent to this project's sessions so far.
 """
 
-from configs import shipped
+from jaxflow.configs import shipped
 
 
 def get_config():
   config = shipped.small_model_config()
   config.seed = 100  # data order of its own (the CPU rounds used seeds 0-6)
-  config.train.init_from = "checkpoints/jaxflow_synthetic"  # whatever round is shipped
+  config.train.init_from = "jaxflow/checkpoints/jaxflow_synthetic"  # whatever round is shipped
   config.data.num_points = 8192
   config.data.crop_from = 0
   config.model.truncate_k = 512  # 1/16 of the cloud, as in every CPU round and the paper

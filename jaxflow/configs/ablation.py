@@ -15,7 +15,7 @@ The training/data settings are those of configs/default.py; add the FT3D setting
 `--config.data...` overrides or start from configs/ft3d_stage1.py.
 """
 
-from configs import default
+from jaxflow.configs import default
 
 ROWS = {
   "gcl": dict(residual=False, cell="gru"),

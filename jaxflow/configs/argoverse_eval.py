@@ -9,7 +9,7 @@ timed). model.corr_chunk builds the correlation in row blocks so memory grows wi
 changes no parameter, so it is taken from this config rather than from the checkpoint.
 """
 
-from configs import default
+from jaxflow.configs import default
 
 
 def get_config(arg: str = ""):

@@ -5,7 +5,7 @@ refinement loss for 20 epochs (Adam 1e-3, batch 2, 8192 points, 8 iterations).
         --workdir runs/ft3d_stage2 --config.train.init_from=runs/ft3d_stage1
 """
 
-from configs import ft3d_stage1
+from jaxflow.configs import ft3d_stage1
 
 
 def get_config(arg: str = ""):

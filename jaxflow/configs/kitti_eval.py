@@ -8,7 +8,7 @@ The model comes from the checkpoint; this config's model is the paper's, so a ch
 model is refused: evaluate those with --config.eval.FIELD=... overrides instead of this file.
 """
 
-from configs import default
+from jaxflow.configs import default
 
 
 def get_config(arg: str = ""):

@@ -10,7 +10,7 @@ The plain config is PV-RAFT's stage-1 network (the official RSF, 192,034 paramet
         --config.train.stage=2 --config.train.init_from=runs/pvraft
 """
 
-from configs import default
+from jaxflow.configs import default
 
 
 def get_config(arg: str = ""):

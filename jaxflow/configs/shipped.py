@@ -1,4 +1,4 @@
-r"""The shipped checkpoint `checkpoints/jaxflow_synthetic/`: configs/default.py's small CPU model
+r"""The shipped checkpoint `jaxflow/checkpoints/jaxflow_synthetic/`: configs/default.py's small CPU model
 trained on synthetic_mix (FlyingThings-like and LiDAR-like pairs alternating), in rounds that each
 continue from the previous one.
 
@@ -22,10 +22,10 @@ Round 2 (`round2_warmup`, `round2`, `round2_stage2`): stage 1 on windows of the 
 the test density (data.crop_from 8192), a 384-point warm-up from scratch, then 1024-point windows.
 Round 1 (`round1`, `round1_stage2`): 1024 points sampled from the whole clouds.
 scripts/train_shipped.sh holds the exact commands (and the copy into checkpoints/); the model card
-checkpoints/jaxflow_synthetic/MODEL_CARD.md says what each round gave.
+jaxflow/checkpoints/jaxflow_synthetic/MODEL_CARD.md says what each round gave.
 """
 
-from configs import default
+from jaxflow.configs import default
 
 ARGS = ("", "round8", "round7", "round6", "round5", "round4", "round4_stage2", "round3",
         "round3_stage2", "round2_warmup", "round2", "round2_stage2", "round1", "round1_stage2")
