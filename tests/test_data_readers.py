@@ -118,7 +118,7 @@ def test_open_dataset_errors_name_the_problem(tmp_path):
   for spec, problem in [("nope:/x", "unknown dataset format 'nope'"), (f"ft3d:{tmp_path}/none", "missing dataset root"),
                         ("ft3d:", "missing root"), (f"ft3d:{tmp_path}", "missing FT3D folder"),
                         ("files:a.npy", "files:PC1,PC2"), ("synthetic_things:x", "COUNT"),
-                        ("synthetic_cats", "unknown synthetic kind"), (f"h5:{tmp_path}/x.h5", "missing HDF5 file")]:
+                        ("synthetic_cats", "unknown dataset format .synthetic_cats."), (f"h5:{tmp_path}/x.h5", "missing HDF5 file")]:
     with pytest.raises(DataError, match=problem):
       open_dataset(spec)
   make_ft3d(tmp_path, train=(4,))

@@ -17,8 +17,8 @@ import h5py
 import numpy as np
 import tqdm
 
+from jaxflow.data import open_dataset
 from jaxflow.data.hdf5 import H5Writer
-from jaxflow.data.readers import open_dataset
 from jaxflow.errors import ConfigError, DataError, JaxflowError
 
 

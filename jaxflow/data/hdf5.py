@@ -13,7 +13,7 @@ import pathlib
 import h5py
 import numpy as np
 
-from jaxflow.data.readers import Dataset, Pair
+from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.errors import DataError
 
 FORMAT, VERSION = "jaxflow-pairs", 1
@@ -129,3 +129,6 @@ class H5Dataset(Dataset):
 
   def __reduce__(self):  # worker processes reopen the file
     return H5Dataset, self._args
+
+
+register("h5", lambda path, split: H5Dataset(path, split), needs_root=True)

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
-from jaxflow.data.readers import Pair
+from jaxflow.data.registry import Pair
 from jaxflow.data.sampling import augment_pair, check_augment, crop_pair, sample_pair
 from jaxflow.errors import ConfigError, DataError
 

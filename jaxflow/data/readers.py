@@ -1,11 +1,11 @@
-"""Benchmark datasets (FT3D, KITTI, Argoverse, FlowNet3D's FT3Do/KITTIo) as `Pair`s, and `open_dataset`.
+"""Benchmark datasets (FT3D, KITTI, Argoverse, FlowNet3D's FT3Do/KITTIo) as `Pair`s, registered
+with `jaxflow.data.registry`.
 
 Every reader returns full-resolution clouds after its own cuts (DESIGN.md section 2), float32 with a
 bool mask, and names the file in every error. Readers are lazy: opening lists the folders, `ds[i]`
 reads pair i.
 """
 
-import dataclasses
 import pathlib
 import re
 import warnings
@@ -13,6 +13,7 @@ import zipfile
 
 import numpy as np
 
+from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.data.pointfiles import MIN_POINTS, drop_nonfinite, load_npy, read_points, to_float32
 from jaxflow.errors import DataError
 
@@ -27,49 +28,6 @@ FT3D_SPLITS = ("train", "val", "test", "train_all")
 # The 142 KITTI Scene Flow 2015 frames of the HPLFlowNet benchmark.
 KITTI_FRAMES = (2, 3, *range(7, 82), *range(83, 87), *range(88, 99), *range(105, 133),
                 *range(141, 151), 155, *range(157, 165), 168, 169, 199)
-
-
-@dataclasses.dataclass(frozen=True)
-class Pair:
-  """One scene-flow pair; everything float32 except mask (bool: flow valid / evaluated)."""
-  pc1: np.ndarray  # N x 3
-  pc2: np.ndarray  # M x 3
-  flow: np.ndarray  # N x 3
-  mask: np.ndarray  # N
-  name: str  # source: file or folder path, or e.g. "synthetic_things/train/3"
-
-  def __post_init__(self):
-    n = len(self.pc1)
-    if (self.pc1.shape != (n, 3) or self.flow.shape != (n, 3) or self.mask.shape != (n,)
-        or self.pc2.ndim != 2 or self.pc2.shape[1] != 3):
-      raise ValueError(f"{self.name}: inconsistent shapes pc1 {self.pc1.shape}, pc2 {self.pc2.shape}, "
-                       f"flow {self.flow.shape}, mask {self.mask.shape}")
-
-
-class Dataset:
-  """A sequence of Pairs: len(ds), ds[i], iteration, ds.name and ds.describe()."""
-  name: str = ""
-
-  def __len__(self) -> int:
-    raise NotImplementedError
-
-  def load(self, i: int) -> Pair:
-    raise NotImplementedError
-
-  def describe(self) -> str:
-    return f"{self.name}: {len(self)} pairs"
-
-  def __getitem__(self, i: int) -> Pair:
-    n = len(self)
-    if not -n <= i < n:
-      raise IndexError(f"{self.name}: index {i} out of range for {n} pairs")
-    return self.load(i % n)
-
-  def __iter__(self):
-    return (self.load(i) for i in range(len(self)))
-
-  def __repr__(self):
-    return f"<{type(self).__name__} {self.describe()}>"
 
 
 def ft3d_keep(pc1_Nx3, pc2_Nx3) -> np.ndarray:
@@ -407,28 +365,15 @@ class Files(Dataset):
                 name=f"{self.paths[0]},{self.paths[1]}")
 
 
-FORMATS = ("ft3d", "kitti", "argoverse", "flownet3d", "h5", "files",
-           "synthetic_things", "synthetic_lidar", "synthetic_mix")
+def _files(arg: str, split: str | None) -> Files:
+  paths = arg.split(",")
+  if len(paths) != 2 or not all(paths):
+    raise DataError(f"files:{arg}", "expected files:PC1,PC2")
+  return Files(*paths)
 
 
-def open_dataset(spec: str, split: str | None = None) -> Dataset:
-  """Opens "FORMAT:ROOT" (see FORMATS); unknown format or missing root -> DataError naming it."""
-  fmt, _, arg = spec.partition(":")
-  if fmt.startswith("synthetic_"):
-    from jaxflow.data import synthetic  # pylint: disable=import-outside-toplevel
-    return synthetic.open_synthetic(fmt, arg, split)
-  if fmt == "h5":
-    from jaxflow.data import hdf5  # pylint: disable=import-outside-toplevel
-    return hdf5.H5Dataset(arg, split)
-  readers = {"ft3d": FT3D, "kitti": KITTI, "argoverse": Argoverse, "flownet3d": FlowNet3D}
-  if fmt == "files":
-    paths = arg.split(",")
-    if len(paths) != 2 or not all(paths):
-      raise DataError(spec, "expected files:PC1,PC2")
-    return Files(*paths)
-  if fmt not in readers:
-    raise DataError(spec, f"unknown dataset format {fmt!r}; expected FORMAT:ROOT with FORMAT one of "
-                    + ", ".join(FORMATS))
-  if not arg:
-    raise DataError(spec, f"missing root: expected {fmt}:ROOT")
-  return readers[fmt](arg, split)
+register("ft3d", FT3D, needs_root=True)
+register("kitti", KITTI, needs_root=True)
+register("argoverse", Argoverse, needs_root=True)
+register("flownet3d", FlowNet3D, needs_root=True)
+register("files", _files, needs_root=True)

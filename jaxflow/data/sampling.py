@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from jaxflow.data.readers import Pair
+from jaxflow.data.registry import Pair
 from jaxflow.errors import ConfigError, DataError
 
 AUGMENT_KEYS = ("rotation_deg", "scale", "jitter")

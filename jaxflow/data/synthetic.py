@@ -34,7 +34,8 @@ import math
 
 import numpy as np
 
-from jaxflow.data.readers import DEPTH_LIMIT, Dataset, Pair, ft3d_keep, kitti_keep
+from jaxflow.data.readers import DEPTH_LIMIT, ft3d_keep, kitti_keep
+from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.errors import DataError
 
 KINDS = ("synthetic_things", "synthetic_lidar", "synthetic_mix")
@@ -666,3 +667,7 @@ def open_synthetic(kind: str, count: str, split: str | None) -> Synthetic:
   if not count.isdigit() or int(count) < 1:
     raise DataError(spec, f"COUNT must be a positive integer, got {count!r}")
   return Synthetic(kind, split, int(count))
+
+
+for _kind in KINDS:
+  register(_kind, lambda count, split, kind=_kind: open_synthetic(kind, count, split))

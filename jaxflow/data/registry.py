@@ -1,0 +1,82 @@
+"""The dataset interface (`Pair`, `Dataset`) and the registry of formats behind `open_dataset`.
+
+Reader modules register their formats here (`register("ft3d", FT3D)`); `jaxflow.data` imports every
+reader module, so `open_dataset` knows them all. This module imports no reader: data flows one way,
+readers -> registry.
+"""
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+
+from jaxflow.errors import DataError
+
+@dataclasses.dataclass(frozen=True)
+class Pair:
+  """One scene-flow pair; everything float32 except mask (bool: flow valid / evaluated)."""
+  pc1: np.ndarray  # N x 3
+  pc2: np.ndarray  # M x 3
+  flow: np.ndarray  # N x 3
+  mask: np.ndarray  # N
+  name: str  # source: file or folder path, or e.g. "synthetic_things/train/3"
+
+  def __post_init__(self):
+    n = len(self.pc1)
+    if (self.pc1.shape != (n, 3) or self.flow.shape != (n, 3) or self.mask.shape != (n,)
+        or self.pc2.ndim != 2 or self.pc2.shape[1] != 3):
+      raise ValueError(f"{self.name}: inconsistent shapes pc1 {self.pc1.shape}, pc2 {self.pc2.shape}, "
+                       f"flow {self.flow.shape}, mask {self.mask.shape}")
+
+
+class Dataset:
+  """A sequence of Pairs: len(ds), ds[i], iteration, ds.name and ds.describe()."""
+  name: str = ""
+
+  def __len__(self) -> int:
+    raise NotImplementedError
+
+  def load(self, i: int) -> Pair:
+    raise NotImplementedError
+
+  def describe(self) -> str:
+    return f"{self.name}: {len(self)} pairs"
+
+  def __getitem__(self, i: int) -> Pair:
+    n = len(self)
+    if not -n <= i < n:
+      raise IndexError(f"{self.name}: index {i} out of range for {n} pairs")
+    return self.load(i % n)
+
+  def __iter__(self):
+    return (self.load(i) for i in range(len(self)))
+
+  def __repr__(self):
+    return f"<{type(self).__name__} {self.describe()}>"
+
+
+# format name -> (opener(arg, split) -> Dataset, whether ARG is required)
+_FORMATS: dict[str, tuple[Callable[[str, str | None], Dataset], bool]] = {}
+
+
+def register(name: str, opener: Callable[[str, str | None], Dataset], needs_root: bool = False):
+  """Makes "NAME[:ARG]" open `opener(ARG, split)`; needs_root: ARG may not be empty."""
+  if name in _FORMATS:
+    raise ValueError(f"dataset format {name!r} is registered twice")
+  _FORMATS[name] = (opener, needs_root)
+
+
+def formats() -> tuple[str, ...]:
+  return tuple(_FORMATS)
+
+
+def open_dataset(spec: str, split: str | None = None) -> Dataset:
+  """Opens "FORMAT:ARG" (a registered format); unknown format or missing root -> DataError."""
+  fmt, _, arg = spec.partition(":")
+  if fmt not in _FORMATS:
+    raise DataError(spec, f"unknown dataset format {fmt!r}; expected FORMAT:ROOT with FORMAT one of "
+                    + ", ".join(_FORMATS))
+  opener, needs_root = _FORMATS[fmt]
+  if needs_root and not arg:
+    raise DataError(spec, f"missing root: expected {fmt}:ROOT")
+  return opener(arg, split)
