@@ -1,22 +1,23 @@
 """Shared command-line wrapper: a user's mistake is one line on stderr and exit code 2.
 
     from jaxflow import cli
-    if __name__ == "__main__":
-      cli.run(main)            # absl: parses flags, then main(argv)
-
+    cli.run(main)              # absl: checks the config flags, parses, then main(argv)
     cli.guard(main, args)      # any other parser: calls main(args) with the same error handling
 
-`jaxflow.errors.JaxflowError` (bad file, argument, checkpoint, non-finite training) and absl flag
-errors print `error: <message>` and exit with 2, without a traceback; anything else is a bug and
-keeps its traceback.
+`jaxflow.errors.JaxflowError` (bad file, argument, checkpoint, non-finite training), absl flag
+errors, a config file that does not load and a `--config.FIELD` that names no field print
+`error: <message>` and exit with 2, without a traceback; anything else is a bug and keeps its
+traceback. `--print_config` prints the config (overrides applied) with its fields' comments.
 """
 
 import sys
 from typing import Any, Callable
 
 from absl import app, flags, logging
+from ml_collections import config_flags
 
-from jaxflow.errors import JaxflowError
+from jaxflow import configfile
+from jaxflow.errors import ConfigError, JaxflowError
 
 EXIT_USER_ERROR = 2
 
@@ -57,32 +58,37 @@ def guard(main: Callable[..., Any], *args, **kwargs):
     fail(str(e))
 
 
-def _parse_flags(argv):
+def _config_flags() -> list[str]:
+  """The names of the config-file flags (ml_collections' parser says "config object")."""
+  return [name for name in flags.FLAGS if flags.FLAGS[name].parser.flag_type() == "config object"]
+
+
+def _parse_flags(argv: list[str]) -> list[str]:
+  """Checks every config flag's file and overrides first (a clean message), then lets absl parse."""
   try:
+    for name in _config_flags():
+      default = flags.FLAGS[name].default
+      argv = configfile.check_argv(argv, name, default if isinstance(default, str) else None)
     argv = flags.FLAGS(argv)
-  except flags.Error as e:
-    text = str(e)
-    if "Traceback (most recent call last)" in text:  # ml_collections: get_config() raised
-      lines = [l.strip() for l in text.splitlines() if l.strip()]
-      text = lines[0].split("Traceback")[0] + " " + lines[-1]
-    fail(text)
-  except (AttributeError, KeyError) as e:  # ml_collections: --config.FIELD names no field
-    field = str(e).strip("'\" ")
-    given = [a for a in argv[1:] if a.startswith("--") and field in a.split("=")[0].split(".")]
-    fail(f"unknown config field {field!r}" + (f" in {given[0]}" if given else ""))
-  for name in flags.FLAGS:
-    value = flags.FLAGS[name].value
-    if type(value).__name__ == "_ErrorConfig":  # ml_collections defers a config file's failure
-      try:
-        value.keys()
-      except Exception as e:  # pylint: disable=broad-except
-        lines = [l.strip() for l in str(e).splitlines() if l.strip()]
-        fail(f"--{name}: cannot load the config file: {lines[-1] if lines else e}")
+  except (ConfigError, flags.Error) as e:
+    fail(str(e))
   if not flags.FLAGS["verbosity"].present:  # orbax and jax log every step of a save at INFO
     logging.set_verbosity(logging.WARNING)
+  if flags.FLAGS.print_config:
+    for name in _config_flags():
+      path = config_flags.get_config_filename(flags.FLAGS[name])
+      print(configfile.describe(flags.FLAGS[name].value, path.split(":")[0], name))
+    sys.exit(0)
   return argv
 
 
 def run(main: Callable[[list], Any]):
-  """absl's `app.run(main)` with `guard`; flag errors also become one line and exit code 2."""
+  """absl's `app.run(main)` with `guard`; flag and config errors also become one line and exit 2.
+  --help lists the flags of main's module, also when it runs as a console script."""
+  if "print_config" not in flags.FLAGS:
+    flags.DEFINE_bool("print_config", False, "Print the config (with the overrides given) field by "
+                      "field, with each field's comment, and exit.")
+  for module in (main.__module__, __name__):  # absl's --help shows sys.argv[0]'s flags
+    for flag in flags.FLAGS.get_flags_for_module(module):
+      flags.FLAGS.register_key_flag_for_module(sys.argv[0], flag)
   app.run(lambda argv: guard(main, argv), flags_parser=_parse_flags)

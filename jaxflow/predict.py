@@ -7,8 +7,9 @@ r"""Scene flow of your own point files with a trained checkpoint.
 
 PC1 and PC2 are any file `jaxflow.data.read_points` reads (.npy, .ply, .pcd, KITTI .bin, .xyz/.txt),
 in metres, in one frame: x right, y up, z forward works best (the conventions of the FT3D and KITTI
-readers the models are trained in). The output is float32 N x 3, one row per point of PC1, in file
-order: row i is the flow of the i-th point of PC1 that read_points keeps. read_points drops rows with
+readers the models are trained in). The output is float32 N x 3 (.npy; --out FLOW.txt or FLOW.csv
+writes the same rows as text), one row per point of PC1, in file order: row i is the flow of the
+i-th point of PC1 that read_points keeps. read_points drops rows with
 a non-finite coordinate; when it does, the count is printed on stderr and those rows have no output
 row (the output aligns with the finite rows of PC1, in their order).
 
@@ -215,6 +216,33 @@ def read_cloud(path) -> tuple[np.ndarray, str | None]:
 
 # The command line.
 
+SIZE_RATIO_WARNING = 100  # predict warns when one cloud has this many times the other's points
+FLOW_SUFFIXES = (".npy", ".txt", ".csv")
+
+
+def _used(name: str, n: int, max_points: int | None, whole: bool) -> str:
+  """How a cloud of n points went into the model, for the closing message."""
+  if whole or n <= max_points:
+    return f"{name}: all {n} points used"
+  return (f"{name}: sampled to {max_points} of {n} points"
+          + (", flow mapped back to every point" if name == "PC1" else ""))
+
+
+def _write_flow(out: pathlib.Path, flow_Nx3):
+  """.npy (float32 N x 3) or text (.txt: x y z per line, .csv: comma separated); else an error."""
+  if out.suffix.lower() not in FLOW_SUFFIXES:
+    raise ConfigError(f"--out {out}: unknown file type {out.suffix or '(no suffix)'!r}; "
+                      f"use one of {', '.join(FLOW_SUFFIXES)}")
+  try:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".npy":
+      with open(out, "wb") as f:
+        np.save(f, flow_Nx3)
+    else:
+      np.savetxt(out, flow_Nx3, fmt="%.6f", delimiter="," if out.suffix.lower() == ".csv" else " ")
+  except OSError as e:
+    raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
+
 
 def _define_flags():
   from absl import flags  # pylint: disable=import-outside-toplevel
@@ -225,7 +253,8 @@ def _define_flags():
     "config.eval.num_iters); the model comes from the checkpoint.", lock_config=True)
   flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "
                       "shipped jaxflow/checkpoints/jaxflow_synthetic/).")
-  flags.DEFINE_string("out", None, "Write the flow here (.npy, float32, one row per point of PC1).")
+  flags.DEFINE_string("out", None, "Write the flow here, one row per point of PC1: .npy "
+                      "(float32) or text, .txt (x y z per line) or .csv.")
   flags.DEFINE_integer("iters", None, "Flow iterations (default: config.eval.num_iters, 32).")
   flags.DEFINE_integer("max-points", None, "Clouds above this size are sampled to it and the flow is "
                        "mapped back to every PC1 point by nearest sampled neighbour (default: "
@@ -273,22 +302,22 @@ def main(argv):
   flow_Nx3 = predictor(pc1, pc2, num_iters=num_iters, max_points=max_points, full=FLAGS.full,
                        corr_chunk=FLAGS["corr-chunk"].value, seed=FLAGS.seed,
                        names=(pc1_path, pc2_path), optimise=optimise).astype(np.float32)
-  try:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as f:
-      np.save(f, flow_Nx3)
-  except OSError as e:
-    raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
+  _write_flow(out, flow_Nx3)
   if note1:
     print(f"note: {note1}; {out} has one row per remaining PC1 row, in file order", file=sys.stderr)
   if note2:
     print(f"note: {note2}", file=sys.stderr)
-  how = ("whole clouds" if FLAGS.full or not max_points or max(len(pc1), len(pc2)) <= max_points
-         else f"sampled to {max_points} points, flow mapped back to every PC1 point")
+  whole = FLAGS.full or not max_points
+  how = "; ".join(_used(name, len(pc), max_points, whole) for name, pc in (("PC1", pc1), ("PC2", pc2)))
   how += f"; {num_iters} iterations" + (f", then {optimise.steps} test-time steps" if optimise.steps
                                          else "")
   print(f"{out}: flow of {len(pc1)} points ({how}; {predictor.name})",
         file=sys.stderr)
+  ratio = max(len(pc1), len(pc2)) / min(len(pc1), len(pc2))
+  if ratio > SIZE_RATIO_WARNING:
+    print(f"warning: PC1 has {len(pc1)} points and PC2 {len(pc2)} ({ratio:.0f}x): the model expects "
+          "two scans of one scene at a similar density; this flow is unlikely to mean much",
+          file=sys.stderr)
   if FLAGS.render:
     from jaxflow import viz  # pylint: disable=import-outside-toplevel
     viz.render_pair(pc1, pc2, flow_Nx3, FLAGS.render,
@@ -296,7 +325,13 @@ def main(argv):
     print(f"{FLAGS.render}: Fig. 2 view", file=sys.stderr)
 
 
-if __name__ == "__main__":
-  _define_flags()
+def run():
+  """The console script `jaxflow-predict`."""
   from jaxflow import cli  # pylint: disable=import-outside-toplevel
+
+  _define_flags()
   cli.run(main)
+
+
+if __name__ == "__main__":
+  run()

@@ -1,0 +1,49 @@
+r"""Evaluates a checkpoint on a dataset: the paper's table (EPE, AccS, AccR, outliers, angle).
+
+    python -m jaxflow.evaluate --checkpoint runs/default --dataset synthetic_lidar:64 --split test
+    python -m jaxflow.evaluate --config configs/kitti_eval.py --checkpoint runs/ft3d_stage2 \
+        --dataset kitti:data/KITTI_processed_occ_final --json kitti.json
+
+(`jaxflow-evaluate` and evaluate.py are the same command.) The model comes from the checkpoint
+(workdir, checkpoints folder or step folder; default: the shipped
+jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192 points, 32
+iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; --dataset and --split
+default to config.eval.dataset and config.eval.split.
+"""
+
+from jaxflow import cli, evaluation
+
+
+def _define_flags():
+  from absl import flags  # pylint: disable=import-outside-toplevel
+  from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
+
+  config_flags.DEFINE_config_file(
+    "config", evaluation.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True)
+  flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder.")
+  flags.DEFINE_string("dataset", None, "FORMAT:ROOT, e.g. kitti:data/KITTI_processed_occ_final "
+                      "(default: config.eval.dataset).")
+  flags.DEFINE_string("split", None, "Dataset split (default: config.eval.split).")
+  flags.DEFINE_string("json", None, "Write the results here as JSON.")
+  flags.DEFINE_string("render", None, "Render every pair into this folder (jaxflow.viz).")
+
+
+def main(argv):
+  from absl import flags  # pylint: disable=import-outside-toplevel
+
+  FLAGS = flags.FLAGS
+  if len(argv) > 1:
+    cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  model_fields = evaluation.requested_model_fields(FLAGS["config"])
+  evaluation.evaluate_checkpoint(FLAGS.checkpoint, FLAGS.config, FLAGS.dataset, FLAGS.split,
+                                 model_fields, FLAGS.json, FLAGS.render)
+
+
+def run():
+  """The console script `jaxflow-evaluate`."""
+  _define_flags()
+  cli.run(main)
+
+
+if __name__ == "__main__":
+  run()
