@@ -58,37 +58,42 @@ def guard(main: Callable[..., Any], *args, **kwargs):
     fail(str(e))
 
 
-def _config_flags() -> list[str]:
-  """The names of the config-file flags (ml_collections' parser says "config object")."""
-  return [name for name in flags.FLAGS if flags.FLAGS[name].parser.flag_type() == "config object"]
-
-
-def _parse_flags(argv: list[str]) -> list[str]:
-  """Checks every config flag's file and overrides first (a clean message), then lets absl parse."""
+def _parse_flags(argv: list[str], config_names=()) -> list[str]:
   try:
-    for name in _config_flags():
-      default = flags.FLAGS[name].default
-      argv = configfile.check_argv(argv, name, default if isinstance(default, str) else None)
     argv = flags.FLAGS(argv)
-  except (ConfigError, flags.Error) as e:
+  except flags.Error as e:
     fail(str(e))
   if not flags.FLAGS["verbosity"].present:  # orbax and jax log every step of a save at INFO
     logging.set_verbosity(logging.WARNING)
   if flags.FLAGS.print_config:
-    for name in _config_flags():
+    for name in config_names:
       path = config_flags.get_config_filename(flags.FLAGS[name])
       print(configfile.describe(flags.FLAGS[name].value, path.split(":")[0], name))
     sys.exit(0)
   return argv
 
 
-def run(main: Callable[[list], Any]):
+def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = None,
+        config_files: dict[str, str | None] | None = None):
   """absl's `app.run(main)` with `guard`; flag and config errors also become one line and exit 2.
-  --help lists the flags of main's module, also when it runs as a console script."""
-  if "print_config" not in flags.FLAGS:
-    flags.DEFINE_bool("print_config", False, "Print the config (with the overrides given) field by "
-                      "field, with each field's comment, and exit.")
+
+  `config_files` maps each config-file flag that `define_flags` defines to its default file (or
+  None): the file and every `--NAME.FIELD` of the command line are checked before absl sees them
+  (ml_collections loads a default file, overrides applied, as soon as its flag is defined). --help
+  lists the flags of main's module, also when it runs as a console script.
+  """
+  config_files = config_files or {}
+  try:
+    for name, default in config_files.items():
+      sys.argv = configfile.check_argv(sys.argv, name, default)
+  except ConfigError as e:
+    fail(str(e))
+  if define_flags is not None:
+    define_flags()
+  flags.DEFINE_bool("print_config", False, "Print the config (with the overrides given) field by "
+                    "field, with each field's comment, and exit.")
   for module in (main.__module__, __name__):  # absl's --help shows sys.argv[0]'s flags
     for flag in flags.FLAGS.get_flags_for_module(module):
       flags.FLAGS.register_key_flag_for_module(sys.argv[0], flag)
-  app.run(lambda argv: guard(main, argv), flags_parser=_parse_flags)
+  app.run(lambda argv: guard(main, argv),
+          flags_parser=lambda argv: _parse_flags(argv, list(config_files)))

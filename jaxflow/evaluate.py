@@ -41,8 +41,7 @@ def main(argv):
 
 def run():
   """The console script `jaxflow-evaluate`."""
-  _define_flags()
-  cli.run(main)
+  cli.run(main, _define_flags, {"config": evaluation.EVAL_CONFIG})
 
 
 if __name__ == "__main__":

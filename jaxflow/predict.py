@@ -229,10 +229,7 @@ def _used(name: str, n: int, max_points: int | None, whole: bool) -> str:
 
 
 def _write_flow(out: pathlib.Path, flow_Nx3):
-  """.npy (float32 N x 3) or text (.txt: x y z per line, .csv: comma separated); else an error."""
-  if out.suffix.lower() not in FLOW_SUFFIXES:
-    raise ConfigError(f"--out {out}: unknown file type {out.suffix or '(no suffix)'!r}; "
-                      f"use one of {', '.join(FLOW_SUFFIXES)}")
+  """.npy (float32 N x 3) or text (.txt: x y z per line, .csv: comma separated)."""
   try:
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".npy":
@@ -294,6 +291,9 @@ def main(argv):
   out = pathlib.Path(FLAGS.out)
   if out.is_dir():
     raise ConfigError(f"--out {out}: is a folder, expected a file name such as flow.npy")
+  if out.suffix.lower() not in FLOW_SUFFIXES:
+    raise ConfigError(f"--out {out}: unknown file type {out.suffix or '(no suffix)'!r}; "
+                      f"use one of {', '.join(FLOW_SUFFIXES)}")
 
   pc1, note1 = read_cloud(pc1_path)
   pc2, note2 = read_cloud(pc2_path)
@@ -329,8 +329,7 @@ def run():
   """The console script `jaxflow-predict`."""
   from jaxflow import cli  # pylint: disable=import-outside-toplevel
 
-  _define_flags()
-  cli.run(main)
+  cli.run(main, _define_flags, {"config": evaluation.EVAL_CONFIG})
 
 
 if __name__ == "__main__":

@@ -55,8 +55,7 @@ def main(argv):
 
 def run():
   """The console script `jaxflow-train`."""
-  _define_flags()
-  cli.run(main)
+  cli.run(main, _define_flags, {"config": None})
 
 
 if __name__ == "__main__":

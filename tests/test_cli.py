@@ -8,7 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from jaxflow import cli
+import numpy as np
+
+from jaxflow import cli, configfile, evaluation, train
+from jaxflow.configs import default
 from jaxflow.errors import CheckpointError
 
 REPO = Path(__file__).absolute().parent.parent
@@ -82,8 +85,83 @@ def test_train_py_user_errors_are_one_line(tmp_path):
   assert_one_line_error(
     python("train.py", "--config", "configs/default.py:smoke", "--workdir", tmp_path,
            "--config.train.nosuch=3"),
-    "unknown config field 'nosuch' in --config.train.nosuch=3",
+    "unknown config field 'train.nosuch' in --config.train.nosuch=3",
   )
   assert_one_line_error(
     python("train.py", "--config", "configs/default.py:bogus", "--workdir", tmp_path), "bogus"
   )
+
+
+def test_near_miss_field_is_named_with_its_flag_and_a_suggestion(tmp_path):
+  proc = python("train.py", "--config", "configs/default.py:smoke", "--workdir", tmp_path,
+                "--config.train.batchsize=4")
+  assert_one_line_error(proc)
+  assert proc.stderr == ("error: unknown config field 'train.batchsize' in "
+                         "--config.train.batchsize=4; did you mean train.batch_size?\n")
+  proc = python("-m", "jaxflow.evaluate", "--config.model.knnn", "3")  # the default config, "FLAG V"
+  assert proc.stderr == ("error: unknown config field 'model.knnn' in --config.model.knnn; "
+                         "did you mean model.knn?\n")
+
+
+def _leaves(d, prefix=""):
+  """Flattened fields of a ConfigDict, written independently of configfile.field_paths."""
+  out = {}
+  for k, v in d.to_dict().items() if prefix == "" else d.items():
+    if isinstance(v, dict):
+      out.update(_leaves(v, f"{prefix}{k}."))
+    else:
+      out[prefix + k] = v
+  return out
+
+
+def test_print_config_lists_every_field_with_its_comment():
+  proc = python("train.py", "--config", "configs/default.py:smoke", "--print_config",
+                "--config.train.lr=0.5")
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  lines = proc.stdout.splitlines()
+  expected = _leaves(default.get_config("smoke"))
+  expected["train.lr"] = 0.5
+  assert len(lines) == len(expected)
+  for field, value in expected.items():
+    (line,) = [l for l in lines if l.startswith(f"config.{field} = ")]
+    assert line.split("  # ")[0] == f"config.{field} = {value!r}"
+  assert "config.train.lr = 0.5  # Adam." in lines
+  # A model field's comment comes from model_config() (`m.knn = 32  # ...`).
+  assert "config.model.knn = 8  # neighbours of each point in its own cloud" in proc.stdout
+
+
+def test_configs_path_falls_back_to_the_package(tmp_path, monkeypatch):
+  monkeypatch.chdir(tmp_path)  # no configs/ here: the package's
+  assert configfile.resolve("configs/default.py:smoke") == (
+    f"{configfile.PACKAGE_CONFIGS / 'default.py'}:smoke")
+  (tmp_path / "configs").mkdir()
+  (tmp_path / "configs" / "default.py").write_text("")
+  assert configfile.resolve("configs/default.py") == "configs/default.py"  # a user's own wins
+
+
+def test_train_says_where_it_wrote(tmp_path):
+  (tmp_path / "checkpoints").mkdir()
+  for name in ("config.json", "metrics.jsonl", "eval.json"):
+    (tmp_path / name).write_text("{}")
+  lines = train.written(tmp_path).splitlines()
+  assert [l.split()[0] for l in lines] == [str(tmp_path / n) for n in
+                                           ("checkpoints", "config.json", "metrics.jsonl",
+                                            "eval.json")]
+
+
+def test_predict_text_output_small_cloud_and_size_warning(tmp_path):
+  if not evaluation.SHIPPED_CHECKPOINT.exists():
+    pytest.skip("no shipped checkpoint in this tree")
+  rng = np.random.default_rng(0)
+  np.save(tmp_path / "small.npy", rng.uniform(-5, 5, (100, 3)).astype(np.float32))
+  np.save(tmp_path / "big.npy", rng.uniform(-5, 5, (50_000, 3)).astype(np.float32))
+  assert_one_line_error(  # refused before any work: no .npy bytes under another name
+    python("-m", "jaxflow.predict", tmp_path / "small.npy", tmp_path / "big.npy", "--out",
+           tmp_path / "flow.dat"), "flow.dat: unknown file type '.dat'; use one of .npy, .txt, .csv")
+  proc = python("-m", "jaxflow.predict", tmp_path / "small.npy", tmp_path / "big.npy", "--out",
+                tmp_path / "flow.txt", "--iters", "1")
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  assert "PC1: all 100 points used; PC2: sampled to 8192 of 50000 points;" in proc.stderr
+  assert "warning: PC1 has 100 points and PC2 50000 (500x)" in proc.stderr
+  flow = np.loadtxt(tmp_path / "flow.txt")  # text, x y z per line
+  assert flow.shape == (100, 3) and np.isfinite(flow).all()
