@@ -1,0 +1,32 @@
+"""configs/shipped.py is the config of the shipped checkpoint: its model, data and training fields
+are the ones the checkpoint stored (config.json and the step folder's own copy)."""
+
+import json
+
+import pytest
+
+from jaxflow import checkpointing, evaluation
+from jaxflow.configs import shipped
+
+SECTIONS = ("seed", "model", "data", "train")  # what made the parameters
+EVAL_FIELDS = ("dataset", "split", "num_points", "num_iters", "batch_size", "seed", "every")
+
+
+@pytest.fixture(scope="module")
+def stored():
+  if not evaluation.SHIPPED_CHECKPOINT.exists():
+    pytest.skip("no shipped checkpoint in this tree")
+  readable = json.loads((evaluation.SHIPPED_CHECKPOINT / "config.json").read_text())
+  ckpts, _, config = checkpointing.open_checkpoint(evaluation.SHIPPED_CHECKPOINT)
+  ckpts.close()
+  return readable, checkpointing.config_to_dict(config)
+
+
+def test_shipped_config_is_the_checkpoints_own(stored):
+  ours = checkpointing.config_to_dict(shipped.get_config())
+  readable, in_step = stored
+  for theirs in (readable, in_step):
+    for section in SECTIONS:
+      assert ours[section] == theirs[section], section
+    for field in EVAL_FIELDS:  # the end-of-run check (test_time came later: off, not stored)
+      assert ours["eval"][field] == theirs["eval"][field], field
