@@ -162,7 +162,8 @@ def _render(render_dir, batch, pred_BxNx3):
       continue
     stem = str(name).strip("/").replace("/", "_").replace(":", "_")
     viz.render_pair(batch["pc1"][i], batch["pc2"][i], pred_BxNx3[i],
-                    Path(render_dir) / f"{stem}.png", gt=batch["flow"][i])
+                    Path(render_dir) / f"{stem}.png", gt=batch["flow"][i], title=str(name),
+                    mask=batch["mask"][i] if "mask" in batch else None)
 
 
 def format_table(rows) -> str:

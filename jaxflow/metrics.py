@@ -1,4 +1,4 @@
-"""Scene-flow metrics (DESIGN.md section 3), computed per pair over its valid points.
+"""Scene-flow metrics (the paper's section 4.3), computed per pair over its valid points.
 
 err = |pred - gt|, rel = err / (|gt| + 1e-4)
 epe        mean err (m)

@@ -8,8 +8,10 @@ Clouds are in the readers' frame (x right, y up, z forward, metres: FT3D after i
 The 3D views put depth (z) into the screen and y up, and look from behind and above the sensor
 (elevation 26 deg, azimuth 22 deg off the viewing direction), which reads well for driving scenes
 (the road recedes, cars stand on it) and FT3D scenes (objects in front of a back wall) alike. Axes
-have equal scales (the box has the data's proportions). To stay quick and legible a cloud above
-`MAX_DRAWN` points is drawn as a seeded random subset of that size (the title says so).
+have equal scales (the box has the data's proportions) and span the points, up to a quarter of
+the span beyond their 0.5th-99.5th percentiles: the far returns of a raw sweep outside that box are not drawn (the
+title counts them). To stay quick and legible a cloud above `MAX_DRAWN` points is drawn as a seeded random
+subset of that size (the title says so).
 """
 
 import json
@@ -17,6 +19,7 @@ import os
 import pathlib
 import shutil
 import tempfile
+import textwrap
 
 import matplotlib
 
@@ -31,6 +34,8 @@ BLUE, RED, GREEN = "#1f4fd6", "#d62728", "#15a336"  # pc1, pc2, pc1 + flow (pape
 ELEVATION, AZIMUTH = 26.0, -112.0  # degrees; azimuth -90 looks straight down +z (depth)
 MAX_DRAWN = 12000  # points drawn per cloud
 ERROR_CLIP = 0.3  # metres: the error colour scale saturates here (the outlier threshold)
+PERCENTILES = (0.5, 99.5)  # the view: these, padded by REACH of their span (far returns: out)
+REACH = 0.25  # the real FT3D and KITTI samples and the synthetic scenes lose no point at this
 
 
 def _screen(points_Nx3) -> tuple:
@@ -49,14 +54,30 @@ def _point_size(n: int) -> float:
   return float(np.clip(3000.0 / max(n, 1), 0.3, 4.0))
 
 
-def _frame(ax, clouds, zoom: float = 1.35):
-  """Equal scales: limits around the data, box with the data's proportions; the sensor's view.
-  `zoom` fills the panel with a flat (driving) scene; a tall box gets less so it is not cut."""
+def view_limits(clouds) -> tuple[np.ndarray, np.ndarray]:
+  """(lo, hi) of the view in screen order (x, z, y): the data's extent, but at most REACH of the
+  PERCENTILES' span beyond them, so that the far returns of a raw sweep do not shrink the scene to
+  a dot."""
   xyz = np.concatenate([np.stack(_screen(c), -1) for c in clouds])
-  lo, hi = np.percentile(xyz, 0.5, axis=0), np.percentile(xyz, 99.5, axis=0)
-  span = np.maximum(hi - lo, 1e-3)
-  pad = 0.03 * span.max()
-  lo, hi = lo - pad, hi + pad
+  lo, hi = np.percentile(xyz, PERCENTILES[0], axis=0), np.percentile(xyz, PERCENTILES[1], axis=0)
+  span = np.maximum(hi - lo, 1e-3).max()
+  # A scene's own edges lie within REACH of the span beyond its percentiles; far returns do not.
+  lo, hi = np.maximum(xyz.min(0), lo - REACH * span), np.minimum(xyz.max(0), hi + REACH * span)
+  pad = 0.03 * np.maximum(hi - lo, 1e-3).max()
+  return lo - pad, hi + pad
+
+
+def _inside(points_Nx3, limits) -> np.ndarray:
+  """Which points lie in the view: matplotlib's 3D axes do not clip, they draw past the box."""
+  lo, hi = limits
+  xyz = np.stack(_screen(points_Nx3), -1)
+  return np.all((xyz >= lo) & (xyz <= hi), axis=1)
+
+
+def _frame(ax, limits, zoom: float = 1.35):
+  """Equal scales: the view's limits, box with the data's proportions; the sensor's view.
+  `zoom` fills the panel with a flat (driving) scene; a tall box gets less so it is not cut."""
+  lo, hi = limits
   ax.set_xlim(lo[0], hi[0])
   ax.set_ylim(lo[1], hi[1])
   ax.set_zlim(lo[2], hi[2])
@@ -70,40 +91,70 @@ def _frame(ax, clouds, zoom: float = 1.35):
   ax.tick_params(labelsize=6, pad=-2)
 
 
-def _panel(ax, pc1_Nx3, pc2_Mx3, flow_Nx3, title, idx1, idx2):
+def _panel(ax, pc1_Nx3, pc2_Mx3, flow_Nx3, title, idx1, idx2, limits) -> int:
+  """Draws one view; returns how many points fell outside it (not drawn)."""
   size = _point_size(len(pc1_Nx3) if idx1 is None else len(idx1))
   pick1 = (lambda a: a) if idx1 is None else (lambda a: a[idx1])
   pick2 = (lambda a: a) if idx2 is None else (lambda a: a[idx2])
   moved_Nx3 = pick1(pc1_Nx3) + pick1(flow_Nx3)
+  outside = 0
   for points, colour, label in ((pick1(pc1_Nx3), BLUE, "pc1"), (pick2(pc2_Mx3), RED, "pc2"),
                                 (moved_Nx3, GREEN, "pc1 + flow")):
-    ax.scatter(*_screen(points), s=size, c=colour, alpha=0.6, linewidths=0, depthshade=False,
-               label=label)
-  _frame(ax, [pick1(pc1_Nx3), pick2(pc2_Mx3), moved_Nx3])
+    keep = _inside(points, limits)
+    outside += int((~keep).sum())
+    ax.scatter(*_screen(points[keep]), s=size, c=colour, alpha=0.6, linewidths=0,
+               depthshade=False, label=label)
+  _frame(ax, limits)
   ax.set_title(title, fontsize=10, y=0.9)  # the zoomed box leaves the top of the axes empty
+  return outside
 
 
-def pair_figure(pc1_Nx3, pc2_Mx3, flow_Nx3, gt=None, title=None):
+def _epe(flow_Nx3, gt_Nx3, mask_N=None) -> float:
+  err_N = np.linalg.norm(flow_Nx3 - gt_Nx3, axis=-1)
+  if mask_N is not None:
+    err_N = err_N[np.asarray(mask_N, bool)]
+  return float(err_N.mean()) if len(err_N) else float("nan")
+
+
+def _title(fig, lines, width_in: float):
+  """The figure's title, each line wrapped to the figure's width (a long file name stays inside)."""
+  chars = max(int(width_in * 11), 30)  # ~11 characters of 11-point text an inch
+  text = "\n".join(textwrap.fill(l, chars) for l in lines if l)
+  if text:
+    fig.suptitle(text, fontsize=11, y=0.99, va="top")
+
+
+def pair_figure(pc1_Nx3, pc2_Mx3, flow_Nx3, gt=None, title=None, mask=None):
   """The Fig. 2 view as a Figure: pc1 blue, pc2 red, pc1 + flow green; a ground-truth panel first
-  when `gt` is given (the paper's layout). Scatter artists are labelled "pc1", "pc2", "pc1 + flow"."""
+  when `gt` is given (the paper's layout), and then the prediction's EPE (over `mask`'s points).
+  Scatter artists are labelled "pc1", "pc2", "pc1 + flow"; the legend sits below the views."""
   pc1_Nx3, pc2_Mx3, flow_Nx3 = (np.asarray(a, np.float32) for a in (pc1_Nx3, pc2_Mx3, flow_Nx3))
   idx1, idx2 = _subset(len(pc1_Nx3), 1), _subset(len(pc2_Mx3), 2)
   panels = [("prediction", flow_Nx3)]
   if gt is not None:
-    panels.insert(0, ("ground truth", np.asarray(gt, np.float32)))
-  fig = plt.figure(figsize=(6.4 * len(panels), 4.6))
+    gt = np.asarray(gt, np.float32)
+    panels = [("ground truth", gt),
+              (f"prediction: EPE {_epe(flow_Nx3, gt, mask):.3f} m", flow_Nx3)]
+  pick1 = (lambda a: a) if idx1 is None else (lambda a: a[idx1])
+  pick2 = (lambda a: a) if idx2 is None else (lambda a: a[idx2])
+  limits = view_limits([pick1(pc1_Nx3), pick2(pc2_Mx3)]
+                       + [pick1(pc1_Nx3) + pick1(flow) for _, flow in panels])
+  width = 6.4 * len(panels)
+  fig = plt.figure(figsize=(width, 4.8))
+  outside = 0
   for i, (name, flow) in enumerate(panels):
     ax = fig.add_subplot(1, len(panels), i + 1, projection="3d")
-    _panel(ax, pc1_Nx3, pc2_Mx3, flow, name, idx1, idx2)
+    outside = max(outside, _panel(ax, pc1_Nx3, pc2_Mx3, flow, name, idx1, idx2, limits))
   handles = [Line2D([], [], ls="", marker="o", ms=6, color=c, label=l)
              for c, l in ((BLUE, "pc1"), (RED, "pc2"), (GREEN, "pc1 + flow"))]
-  fig.legend(handles=handles, loc="upper left", frameon=False, fontsize=9)
-  suptitle = title or ""
+  fig.legend(handles=handles, loc="lower center", ncol=3, frameon=False, fontsize=9)
+  notes = []
   if idx1 is not None or idx2 is not None:
-    suptitle += f"{'  ' if suptitle else ''}(drawn: {MAX_DRAWN} random points per cloud)"
-  if suptitle:
-    fig.suptitle(suptitle, fontsize=11)
-  fig.subplots_adjust(left=0.0, right=1.0, bottom=0.04, top=0.93, wspace=0.0)
+    notes.append(f"drawn: {MAX_DRAWN} random points per cloud")
+  if outside:
+    notes.append(f"{outside} far points outside the view not drawn")
+  _title(fig, [title or "", f"({'; '.join(notes)})" if notes else ""], width)
+  fig.subplots_adjust(left=0.02, right=0.98, bottom=0.06, top=0.92, wspace=0.0)
   return fig
 
 
@@ -115,9 +166,9 @@ def _save(fig, path) -> pathlib.Path:
   return path
 
 
-def render_pair(pc1_Nx3, pc2_Mx3, flow_Nx3, path, gt=None, title=None) -> pathlib.Path:
+def render_pair(pc1_Nx3, pc2_Mx3, flow_Nx3, path, gt=None, title=None, mask=None) -> pathlib.Path:
   """Saves the Fig. 2 view of a pair (see `pair_figure`) as a PNG at `path`."""
-  return _save(pair_figure(pc1_Nx3, pc2_Mx3, flow_Nx3, gt=gt, title=title), path)
+  return _save(pair_figure(pc1_Nx3, pc2_Mx3, flow_Nx3, gt=gt, title=title, mask=mask), path)
 
 
 def error_figure(pc1_Nx3, flow_Nx3, gt_Nx3, mask_N=None, clip: float = ERROR_CLIP, title=None):
@@ -131,16 +182,19 @@ def error_figure(pc1_Nx3, flow_Nx3, gt_Nx3, mask_N=None, clip: float = ERROR_CLI
   idx = _subset(len(pc1_Nx3), 1)
   if idx is not None:
     pc1_Nx3, err_N = pc1_Nx3[idx], err_N[idx]
-  fig = plt.figure(figsize=(7.2, 4.8))
+  limits = view_limits([pc1_Nx3])
+  keep = _inside(pc1_Nx3, limits)
+  fig = plt.figure(figsize=(7.6, 4.8))
   ax = fig.add_subplot(1, 1, 1, projection="3d")
-  art = ax.scatter(*_screen(pc1_Nx3), s=2 * _point_size(len(pc1_Nx3)), c=np.minimum(err_N, clip),
-                   cmap="inferno_r", vmin=0.0, vmax=clip, linewidths=0, depthshade=False)
-  _frame(ax, [pc1_Nx3], zoom=1.15)
-  bar = fig.colorbar(art, cax=fig.add_axes((0.87, 0.2, 0.022, 0.6)))
+  art = ax.scatter(*_screen(pc1_Nx3[keep]), s=2 * _point_size(len(pc1_Nx3)),
+                   c=np.minimum(err_N[keep], clip), cmap="inferno_r", vmin=0.0, vmax=clip,
+                   linewidths=0, depthshade=False)
+  _frame(ax, limits, zoom=1.1)
+  bar = fig.colorbar(art, cax=fig.add_axes((0.84, 0.2, 0.022, 0.6)))
   bar.set_label(f"end-point error (m), clipped at {clip:g}")
-  ax.set_title((title + "\n" if title else "") + f"EPE {epe:.3f} m (mean over points)", fontsize=10,
-               y=0.93)
-  fig.subplots_adjust(left=0.0, right=0.86, bottom=0.0, top=1.0)
+  notes = [f"{int((~keep).sum())} far points outside the view not drawn"] if (~keep).any() else []
+  _title(fig, [title or "", f"EPE {epe:.3f} m (mean over points)", *notes], 7.6)
+  fig.subplots_adjust(left=0.05, right=0.82, bottom=0.02, top=0.95)
   return fig
 
 

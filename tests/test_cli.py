@@ -12,6 +12,7 @@ import numpy as np
 
 from jaxflow import cli, configfile, evaluation, train
 from jaxflow.configs import default
+from jaxflow.data import read_points
 from jaxflow.errors import CheckpointError
 
 REPO = Path(__file__).absolute().parent.parent
@@ -165,3 +166,12 @@ def test_predict_text_output_small_cloud_and_size_warning(tmp_path):
   assert "warning: PC1 has 100 points and PC2 50000 (500x)" in proc.stderr
   flow = np.loadtxt(tmp_path / "flow.txt")  # text, x y z per line
   assert flow.shape == (100, 3) and np.isfinite(flow).all()
+
+
+def test_dropped_rows_message_counts_points(tmp_path):
+  (tmp_path / "a.xyz").write_text("0 0 0\n1 0 0\nnan 0 0\n0 1 0\n0 0 inf\n1 1 1\n")
+  with pytest.warns(UserWarning) as caught:
+    points = read_points(tmp_path / "a.xyz")
+  assert len(points) == 4
+  assert [str(w.message) for w in caught] == [
+    f"{tmp_path / 'a.xyz'}: dropped 2 of 6 points with a non-finite value"]

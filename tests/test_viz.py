@@ -74,13 +74,80 @@ def test_render_pair_and_error_write_pngs(tmp_path):
   assert _is_png(viz.render_error(pc1, flow, flow * 0, tmp_path / "err.png"))
 
 
-def test_evaluate_render_calls_match(tmp_path):
-  """evaluate.py --render goes through evaluation._render -> viz.render_pair."""
+def test_evaluate_render_calls_match(tmp_path, monkeypatch):
+  """evaluate.py --render goes through evaluation._render -> viz.render_pair, with the pair's name
+  and the prediction's EPE over the pair's valid points in the picture."""
   pc1, pc2, flow = _pair()
-  batch = {"pc1": pc1[None], "pc2": pc2[None], "flow": flow[None], "names": ["ft3d/val/0000007"],
-           "pair_valid": np.ones(1, np.float32)}
-  evaluation._render(tmp_path, batch, flow[None] * 0.9)  # pylint: disable=protected-access
+  mask = np.arange(len(pc1)) % 3 > 0
+  pred = flow * 0.9
+  batch = {"pc1": pc1[None], "pc2": pc2[None], "flow": flow[None], "mask": mask[None],
+           "names": ["ft3d/val/0000007"], "pair_valid": np.ones(1, np.float32)}
+  figures = []
+  monkeypatch.setattr(viz, "_save", lambda fig, path: (figures.append(fig), viz.plt.savefig(
+    path, format="png"))[0])
+  evaluation._render(tmp_path, batch, pred[None])  # pylint: disable=protected-access
   assert _is_png(tmp_path / "ft3d_val_0000007.png")
+  epe = np.mean([np.sqrt(((pred[i] - flow[i]) ** 2).sum()) for i in range(len(pc1)) if mask[i]])
+  (fig,) = figures
+  assert "ft3d/val/0000007" in fig._suptitle.get_text()  # pylint: disable=protected-access
+  assert [ax.get_title() for ax in fig.axes] == ["ground truth", f"prediction: EPE {epe:.3f} m"]
+  viz.plt.close(fig)
+
+
+def _boxes(fig):
+  """Window extents of the figure's texts: title, legend, panel titles, axis and colour-bar labels."""
+  fig.canvas.draw()
+  renderer = fig.canvas.get_renderer()
+  texts = {"title": fig._suptitle} if fig._suptitle else {}  # pylint: disable=protected-access
+  for i, ax in enumerate(fig.axes):
+    texts[f"axes {i} title"] = ax.title
+    for name in ("xaxis", "yaxis", "zaxis"):
+      if hasattr(ax, name) and getattr(ax, name).label.get_text():
+        texts[f"axes {i} {name} label"] = getattr(ax, name).label
+  boxes = {k: t.get_window_extent(renderer) for k, t in texts.items() if t.get_text()}
+  for legend in fig.legends:
+    boxes["legend"] = legend.get_window_extent(renderer)
+  return boxes, fig.bbox
+
+
+@pytest.mark.parametrize("with_gt", [False, True])
+def test_pair_view_title_clears_the_legend_and_stays_inside(with_gt):
+  pc1, pc2, flow = _pair()
+  long = "a_rather_long_scan_name_frame_000001.ply -> a_rather_long_scan_name_frame_000002.ply"
+  fig = viz.pair_figure(pc1, pc2, flow, gt=flow * 0 if with_gt else None, title=long)
+  boxes, page = _boxes(fig)
+  assert not boxes["title"].overlaps(boxes["legend"])
+  for name, box in boxes.items():
+    assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1, name
+  viz.plt.close(fig)
+
+
+def test_error_view_labels_are_inside_the_figure():
+  rng = np.random.default_rng(0)  # a wide, flat driving scene (KITTI's) pushed "y (m)" out
+  pc1 = rng.uniform([-30, -1.4, 0], [30, 2, 35], (3000, 3)).astype(np.float32)
+  flow = rng.normal(0, 0.3, (3000, 3)).astype(np.float32)
+  fig = viz.error_figure(pc1, flow, flow * 0, title="scene")
+  boxes, page = _boxes(fig)
+  assert "axes 0 zaxis label" in boxes and "axes 1 yaxis label" in boxes  # y (m), the colour bar
+  for name, box in boxes.items():
+    assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1, name
+  viz.plt.close(fig)
+
+
+def test_far_returns_are_left_out_of_the_view_and_counted():
+  pc1, pc2, flow = _pair(n=2000, m=2000)
+  far = np.float32([[300.0, 0.0, 250.0], [-200.0, 40.0, -300.0]])  # two stray returns of a sweep
+  fig = viz.pair_figure(np.concatenate([pc1, far]), pc2, np.concatenate([flow, far * 0]))
+  ax = fig.axes[0]
+  limits = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
+  assert limits[0, 1] < 20 and limits[1, 1] < 50  # the scene, not the strays, sets the view
+  for art in ax.collections:
+    drawn = np.stack([np.asarray(a) for a in art._offsets3d], -1)  # pylint: disable=protected-access
+    assert ((drawn >= limits[:, 0]) & (drawn <= limits[:, 1])).all()  # nothing past the axes
+  blue = _drawn(_artists(fig, "pc1")[0])
+  assert len(blue) == len(pc1)  # every point of the scene drawn, the two strays left out
+  assert "4 far points outside the view not drawn" in fig._suptitle.get_text()  # pc1 and moved
+  viz.plt.close(fig)
 
 
 @pytest.mark.parametrize("with_stage", [True, False])

@@ -52,7 +52,8 @@ def drop_nonfinite(array, finite_N, path, what: str = "points"):
   n = len(finite_N)
   dropped = n - int(finite_N.sum())
   if dropped:
-    warnings.warn(f"{path}: dropped {dropped} of {n} {what} rows with non-finite values", stacklevel=3)
+    which = "points" if what == "points" else f"points ({what} rows)"
+    warnings.warn(f"{path}: dropped {dropped} of {n} {which} with a non-finite value", stacklevel=3)
     array = array[finite_N]
   if n == 0:
     raise DataError(path, f"{what}: no points (empty array)")
