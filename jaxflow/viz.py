@@ -9,9 +9,9 @@ The 3D views put depth (z) into the screen and y up, and look from behind and ab
 (elevation 26 deg, azimuth 22 deg off the viewing direction), which reads well for driving scenes
 (the road recedes, cars stand on it) and FT3D scenes (objects in front of a back wall) alike. Axes
 have equal scales (the box has the data's proportions) and span the points, up to a quarter of
-the span beyond their 0.5th-99.5th percentiles: the far returns of a raw sweep outside that box are not drawn (the
-title counts them). To stay quick and legible a cloud above `MAX_DRAWN` points is drawn as a seeded random
-subset of that size (the title says so).
+the span beyond their 0.5th-99.5th percentiles: the far returns of a raw sweep outside that box
+are not drawn (the title counts them). To stay quick and legible a cloud above `MAX_DRAWN` points
+is drawn as a seeded random subset of that size (the title says so).
 """
 
 import json

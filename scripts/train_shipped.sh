@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Trains the shipped checkpoint jaxflow/checkpoints/jaxflow_synthetic/ (configs/shipped.py, its round
-# 9) and copies it in; `eval` measures it as its model card reports. Round 9 continues round 8
+# Trains the shipped checkpoint jaxflow/checkpoints/jaxflow_synthetic/ (configs/shipped.py, its
+# round 9) and copies it in; `eval` measures it as its model card reports. Round 9 continues round 8
 # (runs/shipped_r8); rounds 1-8 are one table in docs/history.md, their configs in the git history
 # (git show f4f8b8e:jaxflow/configs/shipped.py, get_config("roundN")). Rerunning the train.py line
 # on the same workdir resumes from its newest checkpoint.

@@ -99,7 +99,7 @@ def test_near_miss_field_is_named_with_its_flag_and_a_suggestion(tmp_path):
   assert_one_line_error(proc)
   assert proc.stderr == ("error: unknown config field 'train.batchsize' in "
                          "--config.train.batchsize=4; did you mean train.batch_size?\n")
-  proc = python("-m", "jaxflow.evaluate", "--config.model.knnn", "3")  # the default config, "FLAG V"
+  proc = python("-m", "jaxflow.evaluate", "--config.model.knnn", "3")  # default config; "FLAG V"
   assert proc.stderr == ("error: unknown config field 'model.knnn' in --config.model.knnn; "
                          "did you mean model.knn?\n")
 
@@ -158,7 +158,8 @@ def test_predict_text_output_small_cloud_and_size_warning(tmp_path):
   np.save(tmp_path / "big.npy", rng.uniform(-5, 5, (50_000, 3)).astype(np.float32))
   assert_one_line_error(  # refused before any work: no .npy bytes under another name
     python("-m", "jaxflow.predict", tmp_path / "small.npy", tmp_path / "big.npy", "--out",
-           tmp_path / "flow.dat"), "flow.dat: unknown file type '.dat'; use one of .npy, .txt, .csv")
+           tmp_path / "flow.dat"),
+    "flow.dat: unknown file type '.dat'; use one of .npy, .txt, .csv")
   proc = python("-m", "jaxflow.predict", tmp_path / "small.npy", tmp_path / "big.npy", "--out",
                 tmp_path / "flow.txt", "--iters", "1")
   assert proc.returncode == 0, proc.stderr[-2000:]

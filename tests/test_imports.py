@@ -79,7 +79,7 @@ def cycles(graph) -> list[list[str]]:
 
 
 def test_cycle_finder_finds_cycles_through_function_level_imports(tmp_path):
-  """The reader itself: a function-level import back up is a cycle; a relative import is resolved."""
+  """The reader itself: a function-level import back up is a cycle; relative imports resolve."""
   pkg = tmp_path / "jaxflow"
   (pkg / "sub").mkdir(parents=True)
   (pkg / "__init__.py").write_text("")

@@ -95,7 +95,8 @@ def test_evaluate_render_calls_match(tmp_path, monkeypatch):
 
 
 def _boxes(fig):
-  """Window extents of the figure's texts: title, legend, panel titles, axis and colour-bar labels."""
+  """Window extents of the figure's texts: title, legend, panel titles, axis and colour-bar
+  labels."""
   fig.canvas.draw()
   renderer = fig.canvas.get_renderer()
   texts = {"title": fig._suptitle} if fig._suptitle else {}  # pylint: disable=protected-access
@@ -142,7 +143,8 @@ def test_far_returns_are_left_out_of_the_view_and_counted():
   limits = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
   assert limits[0, 1] < 20 and limits[1, 1] < 50  # the scene, not the strays, sets the view
   for art in ax.collections:
-    drawn = np.stack([np.asarray(a) for a in art._offsets3d], -1)  # pylint: disable=protected-access
+    offsets = art._offsets3d  # pylint: disable=protected-access
+    drawn = np.stack([np.asarray(a) for a in offsets], -1)
     assert ((drawn >= limits[:, 0]) & (drawn <= limits[:, 1])).all()  # nothing past the axes
   blue = _drawn(_artists(fig, "pc1")[0])
   assert len(blue) == len(pc1)  # every point of the scene drawn, the two strays left out

@@ -6,8 +6,8 @@ configs/default.py's small CPU model, stage 1 on synthetic_mix (FlyingThings-lik
 pairs alternating) on 2048-point windows of clouds sampled to 8192 points, continued from the
 previous round's parameters. The checkpoint stores this config itself (config.json and its step
 folder; tests/test_shipped.py checks they agree). Rounds 1-8, which led to it, are one table in
-docs/history.md; their configs are in the git history (`git show f4f8b8e:jaxflow/configs/shipped.py`,
-`:roundN`). scripts/train_shipped.sh runs this and copies the result into the package.
+docs/history.md; their configs are in the git history (`:roundN` of
+`git show f4f8b8e:jaxflow/configs/shipped.py`). scripts/train_shipped.sh runs this and copies the result into the package.
 """
 
 from jaxflow.configs import default
