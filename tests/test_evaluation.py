@@ -16,7 +16,6 @@ from jaxflow.configs import default
 from jaxflow import checkpointing, evaluation, test_time, training
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError
-from jaxflow.model import PARAMETER_FREE_FIELDS
 
 REPO = Path(__file__).absolute().parent.parent
 CACHE = os.environ.setdefault(
@@ -237,23 +236,3 @@ def test_cli_bad_checkpoint_is_one_line_and_exit_2(workdir, tmp_path):
   assert proc.returncode == 2
   lines = proc.stderr.strip().splitlines()
   assert len(lines) == 1 and "cannot restore the train state" in lines[0], proc.stderr
-
-
-def test_shipped_recipe_configs_build_the_shipped_model():
-  from jaxflow.configs import shipped
-
-  if not evaluation.SHIPPED_CHECKPOINT.exists():
-    pytest.skip("no shipped checkpoint in this tree")
-  _, _, stored = checkpointing.open_checkpoint(evaluation.SHIPPED_CHECKPOINT)
-  for arg in shipped.ARGS:  # every round trains the same network (run with other candidates)
-    config = shipped.get_config(arg)
-    assert not checkpointing.model_differences(config, stored, ignore=PARAMETER_FREE_FIELDS), arg
-  # The shipped step is configs/shipped.py's run (round 9, a stage-1 run).
-  recipe = shipped.get_config("")
-  assert not checkpointing.model_differences(recipe, stored)
-  for field in ("stage", "init_from", "num_iters", "num_steps"):
-    assert stored.train[field] == recipe.train[field], field
-  for field in ("crop_from", "crop_mask_outside"):
-    assert stored.data[field] == recipe.data[field], field
-  with pytest.raises(ValueError, match="takes one of"):
-    shipped.get_config("round10")
