@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import evaluation, geometry, test_time
+from jaxflow import evaluation, geometry, ground, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -88,9 +88,15 @@ class Predictor:
   def __call__(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
                max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
                corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
-               optimise: test_time.Settings = test_time.Settings()):
+               optimise: test_time.Settings = test_time.Settings(), lidar: bool = False,
+               up: str = "z", max_range: float | None = ground.DEFAULT_MAX_RANGE):
     """Flow N x 3 of every point of pc1 (see the module docstring for sampling and --full); with
-    `optimise.steps` > 0 the flow of the clouds the model saw is then optimised (jaxflow.test_time)."""
+    `optimise.steps` > 0 the flow of the clouds the model saw is then optimised (jaxflow.test_time);
+    lidar=True: raw sweeps, see `lidar`."""
+    kwargs = dict(num_iters=num_iters, max_points=max_points, full=full, corr_chunk=corr_chunk,
+                  seed=seed, names=names, optimise=optimise)
+    if lidar:
+      return self.lidar(pc1_Nx3, pc2_Mx3, up=up, max_range=max_range, **kwargs)[0]
     pc1_Nx3 = _cloud(pc1_Nx3, names[0], self.min_points)
     pc2_Mx3 = _cloud(pc2_Mx3, names[1], self.min_points)
     if num_iters < 1:
@@ -115,6 +121,16 @@ class Predictor:
     flow_Nx3 = spread_flow(pc1_Nx3, sub1, flow_Sx3)
     flow_Nx3[idx1] = np.asarray(flow_Sx3)  # a sampled point keeps its own flow, even at ties
     return flow_Nx3
+
+
+  def lidar(self, pc1_Nx3, pc2_Mx3, up: str = "z",
+            max_range: float | None = ground.DEFAULT_MAX_RANGE, names=("pc1", "pc2"), **kwargs):
+    """(flow N x 3 of every pc1 point, ground.SweepInfo) of two raw sweeps: ground removed and
+    the range cut (jaxflow.ground) before the model; removed points get the ego-motion flow."""
+    kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
+    clouds = [_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
+    return ground.raw_sweep_flow(lambda a, b: self(a, b, names=kept_names, **kwargs), *clouds,
+                                 up=up, max_range=max_range)
 
 
 def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndarray:
@@ -176,15 +192,18 @@ def predict_flow(pc1_Nx3, pc2_Mx3, checkpoint=None, num_iters: int = DEFAULT_ITE
                  max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
                  corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
                  predictor: Predictor | None = None,
-                 optimise: test_time.Settings = test_time.Settings()) -> np.ndarray:
+                 optimise: test_time.Settings = test_time.Settings(), lidar: bool = False,
+                 up: str = "z", max_range: float | None = ground.DEFAULT_MAX_RANGE) -> np.ndarray:
   """Flow N x 3 (float32) of every point of pc1 towards pc2; the checkpoint is loaded once and kept.
 
   checkpoint None is the shipped one; `predictor` (from load_predictor / fresh_predictor) replaces it.
+  lidar=True: raw sweeps (ground removed along `up`, `max_range` m kept; see the module docstring).
   """
   if predictor is None:
     predictor = _cached_predictor(None if checkpoint is None else str(checkpoint))
   return predictor(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points, full=full,
-                   corr_chunk=corr_chunk, seed=seed, optimise=optimise)
+                   corr_chunk=corr_chunk, seed=seed, optimise=optimise, lidar=lidar, up=up,
+                   max_range=max_range)
 
 
 def write_ply(path, points_Nx3) -> pathlib.Path:
