@@ -7,7 +7,9 @@ r"""Evaluates a checkpoint on a dataset and prints the paper's table (EPE, AccS,
 The model comes from the checkpoint (workdir, checkpoints folder or step folder; default: the shipped
 jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192 points,
 32 iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; --dataset and
---split default to config.eval.dataset and config.eval.split.
+--split default to config.eval.dataset and config.eval.split. A dataset with ego-motion flow and
+labels (opensf:DIR) also gets the three-way EPE (FD, FS, BS and their mean) in the table and the
+JSON; --save-flows DIR writes the flow of every pair (one .npy per pair, named by the pair).
 """
 
 from absl import flags
@@ -25,6 +27,9 @@ _DATASET = flags.DEFINE_string(
 _SPLIT = flags.DEFINE_string("split", None, "Dataset split (default: config.eval.split).")
 _JSON = flags.DEFINE_string("json", None, "Write the results here as JSON.")
 _RENDER = flags.DEFINE_string("render", None, "Render every pair into this folder (jaxflow.viz).")
+_SAVE_FLOWS = flags.DEFINE_string(
+  "save-flows", None, "Write the flow of every pair into this folder, one NAME.npy per pair "
+  "(jaxflow.export; the evaluated points: with --config.eval.num_points=0 every point of pc1).")
 
 
 def main(argv):
@@ -32,7 +37,7 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   model_fields = evaluation.requested_model_fields(flags.FLAGS["config"])
   evaluation.evaluate_checkpoint(_CHECKPOINT.value, _CONFIG.value, _DATASET.value, _SPLIT.value,
-                                 model_fields, _JSON.value, _RENDER.value)
+                                 model_fields, _JSON.value, _RENDER.value, _SAVE_FLOWS.value)
 
 
 if __name__ == "__main__":

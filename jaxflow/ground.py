@@ -16,11 +16,11 @@ import dataclasses
 import numpy as np
 
 from jaxflow import rigid
-from jaxflow.errors import ConfigError
+from jaxflow.errors import ConfigError, DataError
 
 UP_AXES = {"x": 0, "y": 1, "z": 2}
 DEFAULT_MAX_RANGE = 35.0  # metres, horizontal distance from the sensor (the benchmarks' cut)
-GROUND_MARGIN = 0.25  # metres above the plane still counted as ground (KITTI: y < -1.4, road ~-1.65)
+GROUND_MARGIN = 0.25  # metres above the plane still ground (KITTI: y < -1.4, road near -1.65)
 CELL = 2.0  # metres: the ground is searched among the lowest points of each cell of this size
 LOWEST = 0.3  # metres above a cell's lowest point that are ground candidates
 INLIER = 0.1  # metres: RANSAC inlier distance
@@ -86,21 +86,21 @@ def _refit(points_Kx3, up_vector) -> tuple[np.ndarray, float]:
 
 
 def fit_ground(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_RANGE,
-               seed: int = 0) -> Plane:
+               seed: int = 0, name: str = "points") -> Plane:
   """The ground plane of a sweep: RANSAC over the lowest points of each horizontal cell.
 
   Candidates are the points within LOWEST (0.3 m) of the lowest point of their CELL x CELL (2 m)
   column, inside `max_range`. ITERATIONS random triples give planes; those tilted more than
   MAX_TILT_DEG from `up` are refused; the plane with most candidates within INLIER (0.1 m) wins and
   is refitted by least squares to them (twice). Seeded: the same sweep gives the same plane.
-  Raises ConfigError when no plane is found (fewer than 3 candidates, or none flat enough).
+  Raises DataError(name) when no plane is found (fewer than 3 candidates, or none flat enough).
   """
   k = axis(up)
   points = np.asarray(points_Nx3, np.float64)
   inside = np.flatnonzero(within_range(points, up, max_range))
   cand = points[inside[_candidates(points[inside], k)]] if len(inside) else points[:0]
   if len(cand) < 3:
-    raise ConfigError(f"fit_ground: only {len(cand)} ground candidates within {max_range} m")
+    raise DataError(name, f"no ground plane: only {len(cand)} points within {max_range} m")
   up_vector = np.eye(3)[k]
   rng = np.random.default_rng(seed)
   triples = cand[rng.integers(0, len(cand), (ITERATIONS, 3))]
@@ -111,8 +111,8 @@ def fit_ground(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_
   normals *= np.where(normals @ up_vector < 0, -1.0, 1.0)[:, None]
   ok &= normals @ up_vector >= np.cos(np.radians(MAX_TILT_DEG))
   if not ok.any():
-    raise ConfigError(f"fit_ground: no plane within {MAX_TILT_DEG} degrees of the {up} axis among "
-                      f"the lowest points: is --up right?")
+    raise DataError(name, f"no ground plane within {MAX_TILT_DEG} degrees of the {up} axis among "
+                    "the lowest points: is the up axis right?")
   normals, offsets = normals[ok], -np.sum(normals[ok] * triples[ok, 0], axis=1)
   counts = [(np.abs(cand @ n + d) < INLIER).sum() for n, d in zip(normals, offsets)]
   best = int(np.argmax(counts))
@@ -147,21 +147,22 @@ class SweepInfo:
 
 
 def lidar_keep(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_RANGE,
-               seed: int = 0) -> tuple[np.ndarray, np.ndarray, Plane]:
+               seed: int = 0, name: str = "points") -> tuple[np.ndarray, np.ndarray, Plane]:
   """(keep N, ground N, plane): the non-ground points within max_range."""
-  plane = fit_ground(points_Nx3, up, max_range, seed)
+  plane = fit_ground(points_Nx3, up, max_range, seed, name)
   ground_N = plane.ground(points_Nx3)
   return ~ground_N & within_range(points_Nx3, up, max_range), ground_N, plane
 
 
 def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
-                   max_range: float | None = DEFAULT_MAX_RANGE) -> tuple[np.ndarray, SweepInfo]:
+                   max_range: float | None = DEFAULT_MAX_RANGE,
+                   names=("pc1", "pc2")) -> tuple[np.ndarray, SweepInfo]:
   """Flow N x 3 of EVERY point of pc1: `flow_fn(pc1_kept, pc2_kept)` on the non-ground points
   within max_range of both clouds; the removed pc1 points get the ego-motion flow (see the module
   docstring). Returns the flow and a SweepInfo."""
   pc1, pc2 = np.asarray(pc1_Nx3, np.float32), np.asarray(pc2_Mx3, np.float32)
-  keep1, ground1, plane1 = lidar_keep(pc1, up, max_range)
-  keep2, ground2, plane2 = lidar_keep(pc2, up, max_range)
+  keep1, ground1, plane1 = lidar_keep(pc1, up, max_range, name=names[0])
+  keep2, ground2, plane2 = lidar_keep(pc2, up, max_range, name=names[1])
   kept1 = pc1[keep1]
   flow_kept = np.asarray(flow_fn(kept1, pc2[keep2]), np.float32)
   motion = rigid.fit_static_motion(kept1, flow_kept)
