@@ -24,7 +24,8 @@ from jaxflow.model import build_model
 
 REPO = Path(__file__).absolute().parent.parent
 # log -> [(timestamp, labelled)]: numeric order differs from string order (9 < 10 < 11 < 100)
-LOGS = {"log_a": [(10, True), (9, True), (100, False), (11, False)], "log_b": [(5, True), (6, False)]}
+LOGS = {"log_a": [(10, True), (9, True), (100, False), (11, False)],
+        "log_b": [(5, True), (6, False)]}
 PAIRS = [("log_a", 9, 10), ("log_a", 10, 11), ("log_b", 5, 6)]  # log_a's 11 has no flow
 
 

@@ -1,4 +1,4 @@
-"""jaxflow.ground and jaxflow.rigid: ground removal, range cut and rigid fits against known truth."""
+"""jaxflow.ground and jaxflow.rigid: ground removal, range cut, rigid fits, against known truth."""
 
 import numpy as np
 import pytest

@@ -257,7 +257,8 @@ def test_lidar_gives_every_raw_point_a_flow_and_saves_it(runs, files, predictor)
   flow = np.load(files / "flow_lidar.npy")
   assert flow.shape == raw1.shape and np.isfinite(flow).all()  # one row per input point
   assert "--lidar: ground plane" in stderr and "get the ego-motion flow" in stderr
-  saved = files / "flows" / (export.flow_stem(f"{files / 'raw1.npy'},{files / 'raw2.npy'}") + ".npy")
+  stem = export.flow_stem(f"{files / 'raw1.npy'},{files / 'raw2.npy'}")
+  saved = files / "flows" / f"{stem}.npy"
   np.testing.assert_array_equal(np.load(saved), flow)
   # The 250 ground and 20 far points of the construction follow one rigid motion.
   removed = np.r_[0:250, len(raw1) - 20:len(raw1)]

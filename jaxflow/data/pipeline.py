@@ -222,8 +222,8 @@ def eval_batches(dataset, batch_size: int, num_points: int | None, seed: int = 0
   Pair i is sampled with np.random.default_rng((seed, i)), so two runs give identical batches;
   num_points None keeps whole clouds (batch_size must be 1). The last batch is padded by repeating
   its last pair; 'pair_valid' (B, float32) is 1 for real pairs, 0 for padding. Besides the
-  training keys the dict holds 'names' (list of B str) and, when every pair has them (`Pair.has_labels`),
-  'rigid_flow' (B x N x 3) and 'foreground' (B x N bool), for the three-way EPE.
+  training keys the dict holds 'names' (list of B str) and, when every pair has them
+  (`Pair.has_labels`), 'rigid_flow' (B x N x 3) and 'foreground' (B x N bool), for the three-way EPE.
   """
   if batch_size < 1 or (num_points is not None and num_points < 1):
     raise ConfigError(f"eval_batches: need batch_size >= 1 and num_points >= 1 or None, "
