@@ -8,7 +8,9 @@ r"""Evaluates a checkpoint on a dataset: the paper's table (EPE, AccS, AccR, out
 (workdir, checkpoints folder or step folder; default: the shipped
 jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192 points, 32
 iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; --dataset and --split
-default to config.eval.dataset and config.eval.split.
+default to config.eval.dataset and config.eval.split. A dataset with ego-motion flow and labels
+(opensf:DIR) also gets the three-way EPE (FD, FS, BS and their mean) in the table and the JSON;
+--save-flows DIR writes the flow of every pair (one .npy per pair, named by the pair).
 """
 
 from jaxflow import cli, evaluation
@@ -26,6 +28,9 @@ def _define_flags():
   flags.DEFINE_string("split", None, "Dataset split (default: config.eval.split).")
   flags.DEFINE_string("json", None, "Write the results here as JSON.")
   flags.DEFINE_string("render", None, "Render every pair into this folder (jaxflow.viz).")
+  flags.DEFINE_string("save-flows", None, "Write the flow of every pair into this folder, one "
+                      "NAME.npy per pair (jaxflow.export; the evaluated points: with "
+                      "--config.eval.num_points=0 every point of pc1).")
 
 
 def main(argv):
@@ -36,7 +41,8 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   model_fields = evaluation.requested_model_fields(FLAGS["config"])
   evaluation.evaluate_checkpoint(FLAGS.checkpoint, FLAGS.config, FLAGS.dataset, FLAGS.split,
-                                 model_fields, FLAGS.json, FLAGS.render)
+                                 model_fields, FLAGS.json, FLAGS.render,
+                                 FLAGS["save-flows"].value)
 
 
 def run():

@@ -19,10 +19,10 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import checkpointing, test_time
+from jaxflow import checkpointing, export, test_time
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
-from jaxflow.metrics import METRICS, per_pair_metrics
+from jaxflow.metrics import METRICS, ThreeWayAverage, format_three_way, per_pair_metrics
 from jaxflow.model import build_model
 
 # The shipped checkpoint, used by evaluate.py when --checkpoint is not given.
@@ -66,10 +66,14 @@ def model_predict_fn(model, num_iters: int, refine: bool,
 _metrics_fn = jax.jit(per_pair_metrics)
 
 
-def _run(predict, args, batches, render_dir=None, compiled=None) -> dict:
+def _run(predict, args, batches, render_dir=None, compiled=None, save_dir=None) -> dict:
   """Averages the metrics of `predict(*args, pc1, pc2)` over the pairs of `batches`. `compiled`
-  caches the compiled `predict` by input shapes (compiled before timing) across calls."""
+  caches the compiled `predict` by input shapes (compiled before timing) across calls. Batches with
+  ego-motion flow and labels add "three_way" (metrics.ThreeWayAverage); save_dir: every pair's flow
+  (jaxflow.export)."""
   compiled = {} if compiled is None else compiled
+  three_way = ThreeWayAverage()
+  saver = export.FlowSaver(save_dir) if save_dir is not None else None
   sums = dict.fromkeys(METRICS, 0.0)
   pairs, seconds = 0, 0.0
   for batch in batches:
@@ -86,12 +90,15 @@ def _run(predict, args, batches, render_dir=None, compiled=None) -> dict:
     for k in METRICS:
       sums[k] += float(np.sum(np.asarray(per_pair[k], np.float64) * valid))
     pairs += int(valid.sum())
+    three_way.add(pred, batch)
+    if saver is not None:
+      saver.add(batch, pred)
     if render_dir is not None:
       _render(render_dir, batch, np.asarray(pred))
   if pairs == 0:
     raise ConfigError("the evaluation dataset holds no pairs")
   results = {k: sums[k] / pairs for k in METRICS}
-  results.update(pairs=pairs, ms_per_pair=1000.0 * seconds / pairs)
+  results.update(pairs=pairs, ms_per_pair=1000.0 * seconds / pairs, **three_way.results())
   return results
 
 
@@ -101,12 +108,13 @@ def _output_name(refine: bool, optimise: test_time.Settings) -> str:
 
 def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int, num_iters: int = 32,
              refine: bool = False, seed: int = 0, render_dir=None,
-             optimise: test_time.Settings = test_time.Settings()) -> dict:
+             optimise: test_time.Settings = test_time.Settings(), save_flows=None) -> dict:
   """Metrics of the model's flow on every pair of `dataset`, with pairs and ms_per_pair (the
-  test-time optimisation included when `optimise.steps` > 0)."""
+  test-time optimisation included when `optimise.steps` > 0); save_flows: a folder that receives
+  the flow of every pair (jaxflow.export; the points evaluated: sampled unless num_points None)."""
   predict = model_predict_fn(model, num_iters, refine, optimise)
   batches = eval_batches(dataset, batch_size, num_points, seed=seed)
-  results = _run(predict, (params,), batches, render_dir)
+  results = _run(predict, (params,), batches, render_dir, save_dir=save_flows)
   results["output"] = _output_name(refine, optimise)
   if optimise.steps:
     results["test_time"] = dataclasses.asdict(optimise)
@@ -216,7 +224,7 @@ def load_model(checkpoint=None, config: ml_collections.ConfigDict | None = None,
 
 def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: str | None = None,
                         split: str | None = None, model_fields=(), json_path=None,
-                        render_dir=None) -> dict:
+                        render_dir=None, save_flows=None) -> dict:
   """Evaluates a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
   The model comes from the checkpoint as `load_model` gives it; `config.eval` sets points (0: whole
@@ -233,10 +241,12 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
   results = evaluate(model, params, ds, num_points=config.eval.num_points or None,
                      batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
                      refine=refine, seed=config.eval.seed, render_dir=render_dir,
-                     optimise=test_time.settings_from_config(config.eval))
+                     optimise=test_time.settings_from_config(config.eval), save_flows=save_flows)
   results.update(dataset=dataset, split=split, checkpoint=str(checkpoint), step=step,
                  num_points=config.eval.num_points, num_iters=config.eval.num_iters)
   print(format_table([(f"{dataset} ({split})", results)]))
+  if "three_way" in results:
+    print(format_three_way([(f"{dataset} ({split})", results)]))
   if json_path:
     Path(json_path).absolute().parent.mkdir(parents=True, exist_ok=True)
     Path(json_path).write_text(json.dumps(results, indent=2) + "\n")

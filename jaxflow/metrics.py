@@ -10,6 +10,7 @@ A pair with no valid point gets NaN: it has no defined error.
 """
 
 import jax.numpy as jnp
+import numpy as np
 
 METRICS = ("epe", "acc_strict", "acc_relax", "outliers", "angle")
 
@@ -43,3 +44,76 @@ def per_pair_metrics(pred_BxNx3, gt_BxNx3, mask_BxN=None) -> dict:
 def scene_flow_metrics(pred_BxNx3, gt_BxNx3, mask_BxN=None) -> dict:
   """Each metric averaged over the pairs of the batch."""
   return {k: jnp.mean(v) for k, v in per_pair_metrics(pred_BxNx3, gt_BxNx3, mask_BxN).items()}
+
+
+# The three-way EPE of the AV2 scene-flow challenge (v1; DESIGN.md section 7).
+THREE_WAY = ("fd", "fs", "bs", "mean")
+DYNAMIC_THRESHOLD = 0.05  # metres: a point is dynamic when |gt - rigid flow| >= this
+
+
+def three_way_epe(pred_Nx3, gt_Nx3, rigid_Nx3, foreground_N, mask_N=None) -> dict:
+  """EPE of one pair's valid points split into foreground-dynamic (fd), foreground-static (fs) and
+  background-static (bs), and "mean", the mean of those classes that have a point (NaN when none).
+
+  dynamic: |gt - rigid| >= 0.05 m (rigid = the ego-motion flow); foreground: an object's label.
+  A class with no valid point is NaN, left out of the mean (never counted as 0). Background points
+  that move (labelling noise) belong to no class, as in the challenge.
+  """
+  pred, gt, rigid = (np.asarray(a, np.float64) for a in (pred_Nx3, gt_Nx3, rigid_Nx3))
+  foreground = np.asarray(foreground_N, bool)
+  valid = np.ones(len(gt), bool) if mask_N is None else np.asarray(mask_N) > 0
+  err = np.linalg.norm(pred - gt, axis=-1)
+  dynamic = np.linalg.norm(gt - rigid, axis=-1) >= DYNAMIC_THRESHOLD
+  classes = {"fd": foreground & dynamic, "fs": foreground & ~dynamic, "bs": ~foreground & ~dynamic}
+  out = {k: float(err[m & valid].mean()) if (m & valid).any() else float("nan")
+         for k, m in classes.items()}
+  present = [v for v in out.values() if not np.isnan(v)]
+  out["mean"] = float(np.mean(present)) if present else float("nan")
+  return out
+
+
+class ThreeWayAverage:
+  """Averages `three_way_epe` over the pairs of evaluation batches: call `add(pred, batch)` once per
+  batch (a batch without 'rigid_flow' / 'foreground' is ignored) and `results()` at the end.
+
+  Each class is averaged over the pairs in which it has points; "mean" over the pairs' means.
+  `results()` is {"three_way": {fd, fs, bs, mean, pairs}}, or {} when no batch had labels.
+  """
+
+  def __init__(self):
+    self.sums = dict.fromkeys(THREE_WAY, 0.0)
+    self.counts = dict.fromkeys(THREE_WAY, 0)
+    self.pairs = 0
+
+  def add(self, pred_BxNx3, batch: dict):
+    if "rigid_flow" not in batch or "foreground" not in batch:
+      return
+    pred = np.asarray(pred_BxNx3)
+    for i, valid in enumerate(np.asarray(batch["pair_valid"])):
+      if not valid:
+        continue
+      pair = three_way_epe(pred[i], batch["flow"][i], batch["rigid_flow"][i],
+                           batch["foreground"][i], batch["mask"][i])
+      for k, v in pair.items():
+        if not np.isnan(v):
+          self.sums[k] += v
+          self.counts[k] += 1
+      self.pairs += 1
+
+  def results(self) -> dict:
+    if not self.pairs:
+      return {}
+    mean = {k: self.sums[k] / self.counts[k] if self.counts[k] else float("nan") for k in THREE_WAY}
+    return {"three_way": {**mean, "pairs": self.pairs}}
+
+
+def format_three_way(rows) -> str:
+  """rows: (name, results with "three_way") -> a table of the three-way EPE (m)."""
+  header = ("Dataset", "EPE FD", "EPE FS", "EPE BS", "three-way", "pairs")
+  lines = [header] + [(name, *(f"{r['three_way'][k]:.4f}" for k in THREE_WAY),
+                       str(r["three_way"]["pairs"])) for name, r in rows]
+  widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
+  fmt = lambda line: "| " + " | ".join(c.ljust(w) if i == 0 else c.rjust(w)
+                                       for i, (c, w) in enumerate(zip(line, widths))) + " |"
+  rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
+  return "\n".join([fmt(lines[0]), rule] + [fmt(line) for line in lines[1:]])

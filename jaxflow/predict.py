@@ -1,7 +1,9 @@
 r"""Scene flow of your own point files with a trained checkpoint.
 
+    python -m jaxflow.predict SWEEP1 SWEEP2 --lidar [--up z] [--max-range 35] --out FLOW.npy
     python -m jaxflow.predict PC1 PC2 --out FLOW.npy [--checkpoint PATH] [--config CONFIG]
         [--iters 32] [--max-points 8192 | --full [--corr-chunk 2048]] [--seed 0] [--render OUT.png]
+        [--save-flows DIR]
 
     flow_Nx3 = predict_flow(pc1_Nx3, pc2_Mx3)            # from Python (a notebook)
 
@@ -21,6 +23,16 @@ The flow is then mapped back to EVERY point of PC1: an unsampled pc1 point takes
 nearest sampled pc1 point (Euclidean; a sampled point keeps its own). With --full the model runs on
 the whole clouds instead, with the correlation and kNN built `corr_chunk` pc1 rows at a time, so
 memory stays linear in the number of points (time grows as N x M).
+
+Raw sweeps (--lidar; `lidar=True, up=..., max_range=...` in Python). The models are trained on
+clouds without ground and within 35 m, as the benchmark loaders cut them. --lidar does that cut on
+raw sweeps (jaxflow.ground): a RANSAC plane under the lowest points along --up (z, the LiDAR
+convention; y for a camera frame such as KITTI's) removes each cloud's ground, the points beyond
+--max-range (35 m, horizontal distance) go too, and the model estimates the flow of the rest. Every
+point of PC1 still gets a row: a removed one gets the ego-motion flow of a rigid fit (Kabsch) to the
+static part of the estimated flow (jaxflow.rigid), and a note on stderr says how many and what was
+fitted. --save-flows DIR also writes the flow as DIR/NAME.npy, NAME made from "PC1,PC2" as
+evaluate.py --save-flows names its pairs (jaxflow.export).
 
 Model. The checkpoint (default: the shipped `jaxflow/checkpoints/jaxflow_synthetic/` of this repository, found
 from the package, not the working directory) carries its config: the model is built from it. As in
@@ -50,7 +62,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import evaluation, geometry, test_time
+from jaxflow import evaluation, export, geometry, ground, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -89,9 +101,15 @@ class Predictor:
   def __call__(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
                max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
                corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
-               optimise: test_time.Settings = test_time.Settings()):
+               optimise: test_time.Settings = test_time.Settings(), lidar: bool = False,
+               up: str = "z", max_range: float | None = ground.DEFAULT_MAX_RANGE):
     """Flow N x 3 of every point of pc1 (see the module docstring for sampling and --full); with
-    `optimise.steps` > 0 the flow of the clouds the model saw is then optimised (jaxflow.test_time)."""
+    `optimise.steps` > 0 the flow of the clouds the model saw is then optimised (jaxflow.test_time);
+    lidar=True: raw sweeps, see `lidar`."""
+    kwargs = dict(num_iters=num_iters, max_points=max_points, full=full, corr_chunk=corr_chunk,
+                  seed=seed, names=names, optimise=optimise)
+    if lidar:
+      return self.lidar(pc1_Nx3, pc2_Mx3, up=up, max_range=max_range, **kwargs)[0]
     pc1_Nx3 = _cloud(pc1_Nx3, names[0], self.min_points)
     pc2_Mx3 = _cloud(pc2_Mx3, names[1], self.min_points)
     if num_iters < 1:
@@ -116,6 +134,16 @@ class Predictor:
     flow_Nx3 = spread_flow(pc1_Nx3, sub1, flow_Sx3)
     flow_Nx3[idx1] = np.asarray(flow_Sx3)  # a sampled point keeps its own flow, even at ties
     return flow_Nx3
+
+
+  def lidar(self, pc1_Nx3, pc2_Mx3, up: str = "z",
+            max_range: float | None = ground.DEFAULT_MAX_RANGE, names=("pc1", "pc2"), **kwargs):
+    """(flow N x 3 of every pc1 point, ground.SweepInfo) of two raw sweeps: ground removed and
+    the range cut (jaxflow.ground) before the model; removed points get the ego-motion flow."""
+    kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
+    clouds = [_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
+    return ground.raw_sweep_flow(lambda a, b: self(a, b, names=kept_names, **kwargs), *clouds,
+                                 up=up, max_range=max_range, names=names)
 
 
 def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndarray:
@@ -177,15 +205,18 @@ def predict_flow(pc1_Nx3, pc2_Mx3, checkpoint=None, num_iters: int = DEFAULT_ITE
                  max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
                  corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
                  predictor: Predictor | None = None,
-                 optimise: test_time.Settings = test_time.Settings()) -> np.ndarray:
+                 optimise: test_time.Settings = test_time.Settings(), lidar: bool = False,
+                 up: str = "z", max_range: float | None = ground.DEFAULT_MAX_RANGE) -> np.ndarray:
   """Flow N x 3 (float32) of every point of pc1 towards pc2; the checkpoint is loaded once and kept.
 
   checkpoint None is the shipped one; `predictor` (from load_predictor / fresh_predictor) replaces it.
+  lidar=True: raw sweeps (ground removed along `up`, `max_range` m kept; see the module docstring).
   """
   if predictor is None:
     predictor = _cached_predictor(None if checkpoint is None else str(checkpoint))
   return predictor(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points, full=full,
-                   corr_chunk=corr_chunk, seed=seed, optimise=optimise)
+                   corr_chunk=corr_chunk, seed=seed, optimise=optimise, lidar=lidar, up=up,
+                   max_range=max_range)
 
 
 def write_ply(path, points_Nx3) -> pathlib.Path:
@@ -262,7 +293,13 @@ def _define_flags():
   flags.DEFINE_integer("seed", 0, "Seed of the sampling of larger clouds.")
   flags.DEFINE_string("render", None, "Also save the Fig. 2 view (pc1 blue, pc2 red, pc1 + flow "
                       "green) as this PNG.")
-  flags.mark_flags_as_required(["out"])
+  flags.DEFINE_bool("lidar", False, "Raw sweeps: remove the ground (plane fit along --up) and the "
+                    "points beyond --max-range before the model; those get the ego-motion flow.")
+  flags.DEFINE_enum("up", "z", ["x", "y", "z"], "--lidar: the up axis (z: LiDAR; y: camera frame).")
+  flags.DEFINE_float("max-range", ground.DEFAULT_MAX_RANGE, "--lidar: keep the points within this "
+                     "horizontal distance (m) of the sensor; 0: all.")
+  flags.DEFINE_string("save-flows", None, "Also write the flow into this folder as NAME.npy, NAME "
+                      "made from PC1,PC2 (jaxflow.export; the naming of evaluate.py --save-flows).")
   return flags.FLAGS
 
 
@@ -288,10 +325,12 @@ def main(argv):
     num_iters = FLAGS.iters
   if max_points is not None and max_points < 0:
     raise ConfigError(f"--max-points must be >= 0, got {max_points}")
-  out = pathlib.Path(FLAGS.out)
-  if out.is_dir():
+  if not FLAGS.out and not FLAGS["save-flows"].value:
+    raise ConfigError("give --out FLOW.npy or --save-flows DIR (or both)")
+  out = pathlib.Path(FLAGS.out or "")
+  if FLAGS.out and out.is_dir():
     raise ConfigError(f"--out {out}: is a folder, expected a file name such as flow.npy")
-  if out.suffix.lower() not in FLOW_SUFFIXES:
+  if FLAGS.out and out.suffix.lower() not in FLOW_SUFFIXES:
     raise ConfigError(f"--out {out}: unknown file type {out.suffix or '(no suffix)'!r}; "
                       f"use one of {', '.join(FLOW_SUFFIXES)}")
 
@@ -299,19 +338,35 @@ def main(argv):
   pc2, note2 = read_cloud(pc2_path)
   optimise = test_time.settings_from_config(config.eval)
   predictor = load_predictor(FLAGS.checkpoint, config, model_fields)
-  flow_Nx3 = predictor(pc1, pc2, num_iters=num_iters, max_points=max_points, full=FLAGS.full,
-                       corr_chunk=FLAGS["corr-chunk"].value, seed=FLAGS.seed,
-                       names=(pc1_path, pc2_path), optimise=optimise).astype(np.float32)
-  _write_flow(out, flow_Nx3)
+  kwargs = dict(num_iters=num_iters, max_points=max_points, full=FLAGS.full,
+                corr_chunk=FLAGS["corr-chunk"].value, seed=FLAGS.seed, names=(pc1_path, pc2_path),
+                optimise=optimise)
+  if FLAGS.lidar:
+    flow_Nx3, sweep = predictor.lidar(pc1, pc2, up=FLAGS.up, max_range=FLAGS["max-range"].value,
+                                      **kwargs)
+    print(f"note: {sweep.note()}", file=sys.stderr)
+  else:
+    flow_Nx3 = predictor(pc1, pc2, **kwargs)
+  flow_Nx3 = flow_Nx3.astype(np.float32)
+  written = []
+  if FLAGS.out:
+    _write_flow(out, flow_Nx3)
+    written.append(out)
+  if FLAGS["save-flows"].value:
+    written.append(export.FlowSaver(FLAGS["save-flows"].value).save(f"{pc1_path},{pc2_path}",
+                                                                     flow_Nx3))
   if note1:
-    print(f"note: {note1}; {out} has one row per remaining PC1 row, in file order", file=sys.stderr)
+    print(f"note: {note1}; {written[0]} has one row per remaining PC1 row, in file order",
+          file=sys.stderr)
   if note2:
     print(f"note: {note2}", file=sys.stderr)
   whole = FLAGS.full or not max_points
-  how = "; ".join(_used(name, len(pc), max_points, whole) for name, pc in (("PC1", pc1), ("PC2", pc2)))
+  sizes = sweep.kept if FLAGS.lidar else (len(pc1), len(pc2))
+  how = ("ground and far points removed; " if FLAGS.lidar else "")
+  how += "; ".join(_used(name, n, max_points, whole) for name, n in zip(("PC1", "PC2"), sizes))
   how += f"; {num_iters} iterations" + (f", then {optimise.steps} test-time steps" if optimise.steps
                                          else "")
-  print(f"{out}: flow of {len(pc1)} points ({how}; {predictor.name})",
+  print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points ({how}; {predictor.name})",
         file=sys.stderr)
   ratio = max(len(pc1), len(pc2)) / min(len(pc1), len(pc2))
   if ratio > SIZE_RATIO_WARNING:

@@ -30,6 +30,7 @@ def test_quickstart_runs(tmp_path, monkeypatch):
   assert "EPE" in text and "zero flow" in text
   for name in ("pair.png", "error.png", "frame1.ply"):
     assert (tmp_path / name).stat().st_size > 0
+  assert "raw sweep" in text and "-> flow" in text  # the --lidar cell
   if os.path.exists(ROOT / "jaxflow" / "checkpoints" / "jaxflow_synthetic"):
     assert "command line and Python agree: True" in text
   else:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import default
-from jaxflow import checkpointing, predict, test_time, training
+from jaxflow import checkpointing, export, predict, rigid, test_time, training
 from jaxflow.data import open_dataset, read_points
 from jaxflow.data.sampling import sample_pair
 from jaxflow.model import build_model
@@ -60,7 +60,31 @@ def files(tmp_path_factory, pair):
   np.save(d / "all_nan.npy", np.full((20, 3), np.nan, np.float32))
   np.save(d / "few.npy", pc1[:5])  # fewer than the model's knn (8)
   (d / "notes.txt").write_text("1 2\n3 4\n")
+  raw1, raw2 = raw_sweeps()
+  np.save(d / "raw1.npy", raw1)
+  np.save(d / "raw2.npy", raw2)
   return d
+
+
+def raw_sweeps(seed=0):
+  """Two LiDAR-like raw sweeps (z up): ground at z = -1.7, boxes, points beyond 35 m; the second
+  is the first moved by an ego-motion (a 2 degree yaw and 1 m) with fresh ground and far points."""
+  rng = np.random.default_rng(seed)
+
+  def sweep():
+    ground = np.c_[rng.uniform(-25, 25, (250, 2)), rng.normal(-1.7, 0.02, 250)]
+    far = rng.uniform(-1, 1, (20, 3)) + [40, 5, 0]
+    return ground, far
+
+  boxes = np.concatenate([rng.uniform(0, 1, (60, 3)) * [3, 2, 1.6] + [x, y, -1.7]
+                          for x, y in ((6, 2), (-8, 4), (3, -9))])
+  a = np.radians(2.0)
+  rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+  g1, f1 = sweep()
+  g2, f2 = sweep()
+  raw1 = np.concatenate([g1, boxes, f1])
+  raw2 = np.concatenate([g2, boxes @ rot.T + [1.0, 0, 0], f2])
+  return raw1.astype(np.float32), raw2.astype(np.float32)
 
 
 def _cli(*args):
@@ -99,6 +123,10 @@ def runs(files, workdir):
                       "--config.eval.test_time.steps=20"),
     "bad_test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o9.npy", *ck,
                           "--config.eval.test_time.learning_rate=-1"),
+    "lidar": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_lidar.npy", *ck, "--lidar",
+                  "--iters", 2, "--save-flows", d / "flows"),
+    "bad_up": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "o10.npy", *ck, "--lidar",
+                   "--up", "x"),  # no ground plane across the x axis
     "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *ck,
                          "--config", os.path.join(ROOT, "configs", "default.py") + ":smoke"),
   }
@@ -123,6 +151,7 @@ def runs(files, workdir):
   ("bad_checkpoint", ["nothing_here"]),
   ("config_contradicts", ["contradicts the checkpoint"]),
   ("bad_test_time", ["config.eval.test_time", "learning_rate"]),
+  ("bad_up", ["raw1.npy", "no ground plane", "x axis"]),
 ])
 def test_broken_input_is_one_line_and_exit_2(runs, case, words):
   rc, stdout, stderr = runs[case]
@@ -219,3 +248,21 @@ def test_default_checkpoint_is_the_shipped_one(pair):
     pytest.skip("no shipped checkpoint in this tree")
   flow = predict.predict_flow(pair[0][:64], pair[1][:64], num_iters=2)
   assert flow.shape == (64, 3) and np.isfinite(flow).all()
+
+
+def test_lidar_gives_every_raw_point_a_flow_and_saves_it(runs, files, predictor):
+  rc, _, stderr = runs["lidar"]
+  assert rc == 0, stderr
+  raw1, raw2 = np.load(files / "raw1.npy"), np.load(files / "raw2.npy")
+  flow = np.load(files / "flow_lidar.npy")
+  assert flow.shape == raw1.shape and np.isfinite(flow).all()  # one row per input point
+  assert "--lidar: ground plane" in stderr and "get the ego-motion flow" in stderr
+  stem = export.flow_stem(f"{files / 'raw1.npy'},{files / 'raw2.npy'}")
+  saved = files / "flows" / f"{stem}.npy"
+  np.testing.assert_array_equal(np.load(saved), flow)
+  # The 250 ground and 20 far points of the construction follow one rigid motion.
+  removed = np.r_[0:250, len(raw1) - 20:len(raw1)]
+  fit = rigid.kabsch(raw1[removed], raw1[removed] + flow[removed])
+  np.testing.assert_allclose(fit.flow(raw1[removed]), flow[removed], atol=1e-3)
+  api = predict.predict_flow(raw1, raw2, num_iters=2, predictor=predictor, lidar=True, up="z")
+  np.testing.assert_allclose(api, flow, atol=1e-4)

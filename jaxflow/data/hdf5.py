@@ -5,6 +5,8 @@ two small offset arrays instead of walking thousands of groups):
   pc1, flow  (sum N) x 3 float32;  mask (sum N) bool;  pc2 (sum M) x 3 float32
   offsets1, offsets2  (P + 1) int64: pair i is rows offsets[i]:offsets[i+1]
   names  (P) str
+  rigid_flow (sum N) x 3 float32, foreground (sum N) bool: only when the source's pairs carry
+    ego-motion flow and labels (`Pair.has_labels`, e.g. opensf), for the three-way EPE
   attrs: format, version, source (the spec converted), split, description, count
 """
 
@@ -29,14 +31,29 @@ class H5Writer:
     self.file.attrs.update(format=FORMAT, version=VERSION, source=source, split=split or "",
                            description=description)
     for key, cols, dtype in (("pc1", 3, "f4"), ("flow", 3, "f4"), ("pc2", 3, "f4"), ("mask", 0, "?")):
-      shape, chunks = ((0, cols), (_CHUNK_ROWS, cols)) if cols else ((0,), (_CHUNK_ROWS,))
-      self.file.create_dataset(key, shape=shape, maxshape=(None,) + shape[1:], chunks=chunks,
-                               dtype=dtype)
+      self._create(key, cols, dtype)
     self.offsets1, self.offsets2, self.names = [0], [0], []
+    self.labels = None  # whether the pairs carry rigid_flow and foreground: set by the first
+
+  def _create(self, key, cols, dtype):
+    shape, chunks = ((0, cols), (_CHUNK_ROWS, cols)) if cols else ((0,), (_CHUNK_ROWS,))
+    self.file.create_dataset(key, shape=shape, maxshape=(None,) + shape[1:], chunks=chunks,
+                             dtype=dtype)
 
   def append(self, pair: Pair):
+    if self.labels is None:
+      self.labels = pair.has_labels
+      if self.labels:
+        self._create("rigid_flow", 3, "f4")
+        self._create("foreground", 0, "?")
+    if pair.has_labels != self.labels:
+      raise DataError(self.path, f"pair {pair.name} {'lacks' if self.labels else 'has'} "
+                      "rigid_flow/foreground unlike the first pair: a file holds both or neither")
+    extra = ((("rigid_flow", pair.rigid_flow, None), ("foreground", pair.foreground, None))
+             if self.labels else ())
     for key, array, offsets in (("pc1", pair.pc1, self.offsets1), ("flow", pair.flow, None),
-                                ("mask", pair.mask, None), ("pc2", pair.pc2, self.offsets2)):
+                                ("mask", pair.mask, None), ("pc2", pair.pc2, self.offsets2),
+                                *extra):
       ds = self.file[key]
       start = len(ds)
       ds.resize(start + len(array), axis=0)
@@ -95,12 +112,17 @@ class H5Dataset(Dataset):
       self.offsets2 = self.file["offsets2"][()]
       self.names = [n.decode() if isinstance(n, bytes) else str(n) for n in self.file["names"][()]]
       self.arrays = {k: self.file[k] for k in ("pc1", "flow", "mask", "pc2")}
+      self.labels = "rigid_flow" in self.file
+      if self.labels:
+        self.arrays.update(rigid_flow=self.file["rigid_flow"], foreground=self.file["foreground"])
     except (KeyError, OSError) as e:
       raise DataError(self.path, f"incomplete or corrupt jaxflow pairs file ({e})") from None
     n = len(self.names)
     sizes_ok = (len(self.offsets1) == len(self.offsets2) == n + 1
                 and self.offsets1[-1] == len(self.arrays["pc1"]) == len(self.arrays["flow"])
                 == len(self.arrays["mask"]) and self.offsets2[-1] == len(self.arrays["pc2"])
+                and all(len(self.arrays[k]) == self.offsets1[-1]
+                        for k in ("rigid_flow", "foreground") if self.labels)
                 and (np.diff(self.offsets1) >= 0).all() and (np.diff(self.offsets2) >= 0).all())
     if not sizes_ok:
       raise DataError(self.path, "offsets do not match the stored arrays (truncated or corrupt)")
@@ -117,9 +139,10 @@ class H5Dataset(Dataset):
     try:
       pc1, flow = self.arrays["pc1"][a:b], self.arrays["flow"][a:b]
       mask, pc2 = self.arrays["mask"][a:b], self.arrays["pc2"][c:d]
+      labels = {k: self.arrays[k][a:b] for k in ("rigid_flow", "foreground") if self.labels}
     except (OSError, ValueError) as e:
       raise DataError(self.path, f"pair {i} ({self.names[i]}) unreadable ({e})") from None
-    return Pair(pc1=pc1, pc2=pc2, flow=flow, mask=mask, name=self.names[i])
+    return Pair(pc1=pc1, pc2=pc2, flow=flow, mask=mask, name=self.names[i], **labels)
 
   def describe(self):
     return f"{self.name}: {len(self)} pairs converted from {self.source} (split {self.split or '-'})"

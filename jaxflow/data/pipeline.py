@@ -21,12 +21,16 @@ from jaxflow.errors import ConfigError, DataError
 
 
 def _stack(pairs: list[Pair]) -> dict:
-  return {
+  batch = {
       "pc1": np.stack([p.pc1 for p in pairs]),
       "pc2": np.stack([p.pc2 for p in pairs]),
       "flow": np.stack([p.flow for p in pairs]),
       "mask": np.stack([p.mask for p in pairs]).astype(np.float32),
   }
+  if all(p.has_labels for p in pairs):  # ego-motion flow and labels, for the three-way EPE
+    batch["rigid_flow"] = np.stack([p.rigid_flow for p in pairs])
+    batch["foreground"] = np.stack([p.foreground for p in pairs])
+  return batch
 
 
 def prefetched(fn: Callable, keys: Iterable, depth: int, pool=None) -> Iterator:
@@ -218,7 +222,8 @@ def eval_batches(dataset, batch_size: int, num_points: int | None, seed: int = 0
   Pair i is sampled with np.random.default_rng((seed, i)), so two runs give identical batches;
   num_points None keeps whole clouds (batch_size must be 1). The last batch is padded by repeating
   its last pair; 'pair_valid' (B, float32) is 1 for real pairs, 0 for padding. Besides the
-  training keys the dict holds 'names' (list of B str).
+  training keys the dict holds 'names' (list of B str) and, when every pair has them
+  (`Pair.has_labels`), 'rigid_flow' (B x N x 3) and 'foreground' (B x N bool), for the three-way EPE.
   """
   if batch_size < 1 or (num_points is not None and num_points < 1):
     raise ConfigError(f"eval_batches: need batch_size >= 1 and num_points >= 1 or None, "

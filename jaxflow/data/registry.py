@@ -14,12 +14,19 @@ from jaxflow.errors import DataError
 
 @dataclasses.dataclass(frozen=True)
 class Pair:
-  """One scene-flow pair; everything float32 except mask (bool: flow valid / evaluated)."""
+  """One scene-flow pair; everything float32 except mask (bool: flow valid / evaluated).
+
+  LiDAR datasets with ego-motion and labels (opensf) also give, for the three-way EPE
+  (`jaxflow.metrics.three_way_epe`), `rigid_flow` (the ego-motion flow of each pc1 point) and
+  `foreground` (bool: the point is on an object); other readers leave them None.
+  """
   pc1: np.ndarray  # N x 3
   pc2: np.ndarray  # M x 3
   flow: np.ndarray  # N x 3
   mask: np.ndarray  # N
   name: str  # source: file or folder path, or e.g. "synthetic_things/train/3"
+  rigid_flow: np.ndarray | None = None  # N x 3
+  foreground: np.ndarray | None = None  # N bool
 
   def __post_init__(self):
     n = len(self.pc1)
@@ -27,6 +34,16 @@ class Pair:
         or self.pc2.ndim != 2 or self.pc2.shape[1] != 3):
       raise ValueError(f"{self.name}: inconsistent shapes pc1 {self.pc1.shape}, pc2 {self.pc2.shape}, "
                        f"flow {self.flow.shape}, mask {self.mask.shape}")
+    if ((self.rigid_flow is None) != (self.foreground is None)
+        or (self.rigid_flow is not None and (self.rigid_flow.shape != (n, 3)
+                                             or self.foreground.shape != (n,)))):
+      raise ValueError(f"{self.name}: rigid_flow and foreground must both be given, N x 3 and N "
+                       f"(pc1 has {n} points)")
+
+  @property
+  def has_labels(self) -> bool:
+    """Whether the pair carries ego-motion flow and foreground labels (three-way EPE)."""
+    return self.rigid_flow is not None
 
 
 class Dataset:

@@ -1,0 +1,52 @@
+"""The flow of every pair as files other tools read (`--save-flows DIR` of predict and evaluate.py).
+
+One `.npy` per pair (float32 N x 3, row i the flow of pc1's point i as the model saw it), named by
+the pair: `flow_stem(pair.name)`, the pair's name with every run of characters other than letters,
+digits, '.', '-' and '_' replaced by '_' (e.g. "/data/KITTI/000002" -> "data_KITTI_000002.npy",
+"/data/av2/val/log.h5:315966" -> "data_av2_val_log.h5_315966.npy").
+"""
+
+import pathlib
+import re
+
+import numpy as np
+
+from jaxflow.errors import ConfigError
+
+
+def flow_stem(name: str) -> str:
+  """A file name (without .npy) for a pair name."""
+  return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("_.") or "pair"
+
+
+class FlowSaver:
+  """Writes flows to `folder` (created), one FILE.npy per pair; two pairs that would share a file
+  name are an error (never a silent overwrite)."""
+
+  def __init__(self, folder):
+    self.folder = pathlib.Path(folder)
+    try:
+      self.folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+      raise ConfigError(f"--save-flows {self.folder}: cannot create ({e.strerror or e})") from None
+    self.written: dict[str, str] = {}  # stem -> pair name
+
+  def save(self, name: str, flow_Nx3) -> pathlib.Path:
+    stem = flow_stem(name)
+    if self.written.get(stem, name) != name:
+      raise ConfigError(f"--save-flows: pairs {self.written[stem]!r} and {name!r} map to the same "
+                        f"file {stem}.npy")
+    self.written[stem] = name
+    path = self.folder / f"{stem}.npy"
+    try:
+      np.save(path, np.asarray(flow_Nx3, np.float32))
+    except OSError as e:
+      raise ConfigError(f"--save-flows {path}: cannot write ({e.strerror or e})") from None
+    return path
+
+  def add(self, batch: dict, pred_BxNx3):
+    """The real (not padding) pairs of an evaluation batch."""
+    pred = np.asarray(pred_BxNx3)
+    for i, name in enumerate(batch["names"]):
+      if batch["pair_valid"][i]:
+        self.save(name, pred[i])
