@@ -13,7 +13,7 @@ jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:
 from absl import flags
 from ml_collections import config_flags
 
-from jaxflow import cli, evaluation
+from jaxflow import cli, distributed, evaluation
 
 _CONFIG = config_flags.DEFINE_config_file(
   "config", evaluation.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True
@@ -30,6 +30,7 @@ _RENDER = flags.DEFINE_string("render", None, "Render every pair into this folde
 def main(argv):
   if len(argv) > 1:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  distributed.initialize_from_flags()
   model_fields = evaluation.requested_model_fields(flags.FLAGS["config"])
   evaluation.evaluate_checkpoint(_CHECKPOINT.value, _CONFIG.value, _DATASET.value, _SPLIT.value,
                                  model_fields, _JSON.value, _RENDER.value)
