@@ -42,12 +42,14 @@ def env(**extra):
               PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
 
 
-def start_two(workdir, *extra):
-  """Two train.py processes of one run; stdout and stderr go to files in the workdir's parent."""
+def start_two(workdir, *extra, command=None):
+  """Two train.py processes of one run (or of `command`); their output goes to files beside the
+  workdir."""
   port, procs = free_port(), []
+  command = command or ["train.py", *FLAGS, "--workdir", str(workdir)]
   for i in range(2):
     log = open(f"{workdir}.{i}.{time.monotonic_ns()}.log", "w")
-    cmd = [sys.executable, "train.py", *FLAGS, "--workdir", str(workdir), *extra,
+    cmd = [sys.executable, *command, *extra,
            "--coordinator", f"127.0.0.1:{port}", "--num_processes", "2", "--process_id", str(i)]
     procs.append(subprocess.Popen(cmd, cwd=REPO, env=env(), stdout=log, stderr=subprocess.STDOUT,
                                   text=True))
@@ -95,14 +97,22 @@ def test_two_processes_reach_the_heldout_epe_of_one_process_with_two_devices(run
   assert json.loads((two / "config.json").read_text())["train"]["num_steps"] == STEPS
 
 
-def test_a_two_process_checkpoint_evaluates_in_one_process(runs):
+def test_a_two_process_checkpoint_evaluates_in_one_process_and_in_two(runs, tmp_path):
   two, _ = runs
   config = default.get_config("smoke")
-  results = evaluation.evaluate_checkpoint(two, config)
-  assert results["step"] == STEPS
-  stored = json.loads((two / "eval.json").read_text())["model"]
+  config.eval.dataset = "synthetic_lidar:5"  # 3 batches of 2: process 0 takes two, process 1 one
+  one = evaluation.evaluate_checkpoint(two, config)
+  assert one["step"] == STEPS and one["pairs"] == 5
+  wait_all(start_two(tmp_path / "eval", command=[
+    "evaluate.py", "--config", "configs/default.py:smoke", "--checkpoint", str(two),
+    "--dataset", "synthetic_lidar:5", "--json", str(tmp_path / "eval.json")]))
+  both = json.loads((tmp_path / "eval.json").read_text())
+  assert both["pairs"] == 5
   for k in ("epe", "acc_strict", "acc_relax", "outliers", "angle"):
-    assert results[k] == pytest.approx(stored[k], rel=1e-5, abs=1e-7), k
+    assert both[k] == pytest.approx(one[k], rel=1e-5, abs=1e-7), k
+  stored = json.loads((two / "eval.json").read_text())["model"]
+  config.eval.dataset = "synthetic_lidar:4"  # the run's own held-out pairs
+  assert evaluation.evaluate_checkpoint(two, config)["epe"] == pytest.approx(stored["epe"], rel=1e-5)
 
 
 def test_sigkill_of_one_process_then_a_restart_of_both_resumes(runs, tmp_path):
@@ -115,7 +125,7 @@ def test_sigkill_of_one_process_then_a_restart_of_both_resumes(runs, tmp_path):
   procs[1].send_signal(signal.SIGKILL)
   procs[1].wait()
   try:  # the other one stops at its next collective, or is killed here
-    procs[0].wait(timeout=10)
+    procs[0].wait(timeout=5)
   except subprocess.TimeoutExpired:
     procs[0].send_signal(signal.SIGKILL)
     procs[0].wait()
