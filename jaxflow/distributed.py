@@ -74,7 +74,9 @@ def is_primary() -> bool:
 
 def global_mesh() -> Mesh:
   """A 1-D mesh over every process's devices: batches split over 'data', parameters replicated."""
-  return Mesh(np.asarray(jax.devices()), ("data",))
+  # Process-major order: each process's devices, hence its rows of a batch, are contiguous.
+  devices = sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
+  return Mesh(np.asarray(devices), ("data",))
 
 
 def local_rows(sharding, rows: int) -> tuple[int, int]:

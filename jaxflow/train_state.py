@@ -1,7 +1,7 @@
 """The train state and its optimiser: what a checkpoint holds and how it is shaped.
 
-Below training, evaluation and checkpointing (which restores into `abstract_train_state`); it imports
-only the model's parameters' shapes through the model object it is given.
+Below training and checkpointing (which restores into `abstract_train_state`): it imports no other
+jaxflow module than errors; the model comes as an argument.
 """
 
 import functools
