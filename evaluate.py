@@ -15,6 +15,7 @@ from ml_collections import config_flags
 
 from jaxflow import cli, distributed, evaluation
 
+distributed.define_flags()
 _CONFIG = config_flags.DEFINE_config_file(
   "config", evaluation.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True
 )

@@ -13,6 +13,7 @@ from ml_collections import config_flags
 
 from jaxflow import cli, distributed, training
 
+distributed.define_flags()
 _WORKDIR = flags.DEFINE_string("workdir", None, "Folder for checkpoints, metrics and results.")
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Training config file.", lock_config=True)
 flags.mark_flags_as_required(["config", "workdir"])

@@ -22,10 +22,13 @@ from jax.sharding import Mesh
 
 from jaxflow.errors import ConfigError
 
-_COORDINATOR = flags.DEFINE_string(
-  "coordinator", None, "HOST:PORT of process 0, for a run over many processes (hosts or GPUs).")
-_NUM_PROCESSES = flags.DEFINE_integer("num_processes", None, "Number of processes in the run.")
-_PROCESS_ID = flags.DEFINE_integer("process_id", None, "This process's index, 0 .. N-1.")
+def define_flags():
+  """--coordinator, --num_processes and --process_id (for train.py and evaluate.py; a library
+  import defines no flag)."""
+  flags.DEFINE_string(
+    "coordinator", None, "HOST:PORT of process 0, for a run over many processes (hosts or GPUs).")
+  flags.DEFINE_integer("num_processes", None, "Number of processes in the run.")
+  flags.DEFINE_integer("process_id", None, "This process's index, 0 .. N-1.")
 
 
 def detected_cluster() -> str | None:
@@ -64,7 +67,8 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
 
 def initialize_from_flags() -> int:
   """`initialize` with --coordinator, --num_processes and --process_id (train.py, evaluate.py)."""
-  return initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value)
+  f = flags.FLAGS
+  return initialize(f.coordinator, f.num_processes, f.process_id)
 
 
 def is_primary() -> bool:
