@@ -2,15 +2,20 @@
 
 Layout of a workdir:
 
-    WORKDIR/config.json                  the run's config (also stored in every checkpoint)
+    WORKDIR/config.json                  the config of the newest checkpoint (as stored in it)
     WORKDIR/checkpoints/<step>/state     the train state (`StandardSave`)
     WORKDIR/checkpoints/<step>/config    the config as JSON (`JsonSave`)
 
 orbax writes a step into `<step>.orbax-checkpoint-tmp-*` and renames it when complete, so a
 half-written step is never listed. A numbered step folder that lacks orbax's metadata or one of the
 two items (copied by hand, truncated) is refused with a `CheckpointError` naming it.
+
+A run resumed with another recipe (`train.resume_with_new_recipe`) records it in the stored config:
+its `recipe_changes` lists, per resume, the step it resumed from and the fields that changed there
+(the steps up to it ran with the earlier values).
 """
 
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -20,16 +25,22 @@ import jax
 import jax.numpy as jnp
 import ml_collections
 import orbax.checkpoint as ocp
+from flax import traverse_util
 
+from jaxflow import train_state
 from jaxflow.errors import CheckpointError
+from jaxflow.model import build_model
 
 ITEMS = ("state", "config")
 _STEP_METADATA = "_CHECKPOINT_METADATA"  # written by orbax into every finalised step folder
 
 
-def config_to_dict(config: ml_collections.ConfigDict) -> dict:
-  """The config as plain JSON types (tuples become lists)."""
-  return json.loads(config.to_json_best_effort())
+def config_to_dict(config: ml_collections.ConfigDict, recipe_changes=None) -> dict:
+  """The config as plain JSON types (tuples become lists), with `recipe_changes` when given."""
+  d = json.loads(config.to_json_best_effort())
+  if recipe_changes:
+    d["recipe_changes"] = list(recipe_changes)
+  return d
 
 
 def config_from_dict(d: dict) -> ml_collections.ConfigDict:
@@ -98,17 +109,22 @@ class Checkpoints:
         f"{self.step_dir(step)}: incomplete checkpoint ({reason}); delete it to use an earlier step"
       )
 
-  def save(self, step: int, state: Any, config: ml_collections.ConfigDict):
+  def save(self, step: int, state: Any, config: ml_collections.ConfigDict,
+           recipe_changes=None) -> bool:
+    """Saves `state` and its config at `step` (every process calls it; orbax writes collectively);
+    False when the step was already saved (e.g. a periodic save at the step a signal arrived)."""
     if step in self.manager.all_steps():
-      return  # already saved (e.g. a periodic save at the step the signal arrived)
+      return False
     self.manager.save(
       step,
       args=ocp.args.Composite(
-        state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config_to_dict(config))
+        state=ocp.args.StandardSave(state),
+        config=ocp.args.JsonSave(config_to_dict(config, recipe_changes)),
       ),
       force=True,
     )
     self.manager.wait_until_finished()
+    return True
 
   def restore_config(self, step: int) -> ml_collections.ConfigDict:
     self._check(step)
@@ -179,31 +195,67 @@ def open_checkpoint(path) -> tuple[Checkpoints, int, ml_collections.ConfigDict]:
     raise
 
 
-def write_config(config: ml_collections.ConfigDict, workdir) -> Path:
+def write_config(config: ml_collections.ConfigDict, workdir, recipe_changes=None) -> Path:
+  """WORKDIR/config.json: call it only with the config of a checkpoint just saved beside it."""
   path = Path(workdir) / "config.json"
   tmp = path.with_suffix(".json.tmp")
-  tmp.write_text(json.dumps(config_to_dict(config), indent=2) + "\n")
+  tmp.write_text(json.dumps(config_to_dict(config, recipe_changes), indent=2) + "\n")
   os.replace(tmp, path)
   return path
+
+
+def restore_checkpoint(path, step: int | None = None):
+  """(TrainState, config, step) of a workdir, checkpoints folder or step folder; the model and
+  optimiser are rebuilt from the config stored in the checkpoint."""
+  ckpts, latest, config = open_checkpoint(path)
+  step = latest if step is None else step
+  with contextlib.closing(ckpts):  # on errors too: a notebook goes on after a CheckpointError
+    try:
+      model = build_model(config.model)
+    except (ValueError, TypeError) as e:
+      raise CheckpointError(f"{ckpts.step_dir(step)}: its config does not build a model ({e})")
+    tx = train_state.make_optimizer(config, 1)
+    target = train_state.abstract_train_state(model, tx, config)
+    return ckpts.restore_state(step, target), config, step
+
+
+# What may change when a workdir is resumed: how often the run logs, saves and evaluates, how long it
+# runs (with a constant learning rate), and how data is read; every other train, data and seed field
+# changes what is trained (the model's fields are compared by `model_differences`).
+RESUMABLE_FIELDS = ("train.num_steps", "train.num_epochs", "train.log_every",
+                    "train.checkpoint_every", "train.max_to_keep", "train.resume_with_new_recipe",
+                    "data.prefetch", "data.workers", "data.skip_broken")
+
+
+def recipe_differences(saved: ml_collections.ConfigDict,
+                       config: ml_collections.ConfigDict) -> list[str]:
+  """`field: saved != config` for the seed, data and train fields (less RESUMABLE_FIELDS; with a
+  decaying learning rate the run length is part of the recipe) where the checkpoint's config and
+  `config` differ. Fields the checkpoint's config does not know (added since) are not compared."""
+  free = set(RESUMABLE_FIELDS)
+  if config.train.schedule != "constant":
+    free -= {"train.num_steps", "train.num_epochs"}
+  flat = lambda c: traverse_util.flatten_dict(
+    {k: v for k, v in config_to_dict(c).items() if k in ("seed", "data", "train")}, sep=".")
+  old, new = flat(saved), flat(config)
+  return [f"{k}: {old[k]!r} != {new[k]!r}" for k in sorted(new)
+          if k in old and k not in free and old[k] != new[k]]
 
 
 def save_params(workdir, params, config: ml_collections.ConfigDict, note: str = "") -> Path:
   """Writes parameters made elsewhere (e.g. imported weights) as step 0 of a new workdir, which
   evaluate.py, jaxflow.predict and train.py (resume, or stage 2's init_from) load like a trained
   run; the optimiser state is freshly initialised. `note` is written to WORKDIR/NOTE.txt."""
-  from jaxflow import training  # training imports this module
-  from jaxflow.model import build_model
-
   workdir = Path(workdir).absolute()
-  tx = training.make_optimizer(config, 1)
-  expected = training.abstract_train_state(build_model(config.model), tx, config).params
+  tx = train_state.make_optimizer(config, 1)
+  expected = train_state.abstract_train_state(build_model(config.model), tx, config).params
   shape = lambda t: jax.tree.map(lambda x: (tuple(x.shape), str(x.dtype)), t)
   if shape(params) != shape(expected):
     raise CheckpointError(f"{workdir}: the parameters do not match config.model")
   ckpts = Checkpoints(workdir / "checkpoints", max_to_keep=None)
   if ckpts.steps():
     raise CheckpointError(f"{workdir}: already holds checkpoints; write to a new folder")
-  ckpts.save(0, training.create_train_state(jax.tree.map(jnp.asarray, params), tx), config)
+  ckpts.save(0, train_state.create_train_state(jax.tree.map(jnp.asarray, params), tx), config)
   ckpts.close()
   write_config(config, workdir)
   if note:

@@ -13,13 +13,14 @@ default to config.eval.dataset and config.eval.split. A dataset with ego-motion 
 --save-flows DIR writes the flow of every pair (one .npy per pair, named by the pair).
 """
 
-from jaxflow import cli, evaluation
+from jaxflow import cli, distributed, evaluation
 
 
 def _define_flags():
   from absl import flags  # pylint: disable=import-outside-toplevel
   from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
 
+  distributed.define_flags()
   config_flags.DEFINE_config_file(
     "config", evaluation.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True)
   flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder.")
@@ -39,6 +40,7 @@ def main(argv):
   FLAGS = flags.FLAGS
   if len(argv) > 1:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  distributed.initialize_from_flags()
   model_fields = evaluation.requested_model_fields(FLAGS["config"])
   evaluation.evaluate_checkpoint(FLAGS.checkpoint, FLAGS.config, FLAGS.dataset, FLAGS.split,
                                  model_fields, FLAGS.json, FLAGS.render,

@@ -6,11 +6,14 @@
 Metrics are computed per pair on its valid points, then averaged over pairs; padding pairs
 (`pair_valid` = 0) are excluded. `ms_per_pair` is the model's wall time (compilation excluded: the
 function is compiled ahead of the timed calls) divided by the number of real pairs. Evaluation point
-sampling is seeded, so the same call gives the same numbers.
+sampling is seeded, so the same call gives the same numbers. Batches are streamed (memory does not
+grow with the number of pairs), with a progress bar in pairs/s on stderr. In a run over many
+processes (jaxflow.distributed) each process evaluates every P-th batch and the sums are reduced.
 """
 
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -19,7 +22,9 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import checkpointing, export, test_time
+from tqdm import tqdm
+
+from jaxflow import checkpointing, distributed, export, test_time
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.metrics import METRICS, ThreeWayAverage, format_three_way, per_pair_metrics
@@ -66,35 +71,51 @@ def model_predict_fn(model, num_iters: int, refine: bool,
 _metrics_fn = jax.jit(per_pair_metrics)
 
 
-def _run(predict, args, batches, render_dir=None, compiled=None, save_dir=None) -> dict:
-  """Averages the metrics of `predict(*args, pc1, pc2)` over the pairs of `batches`. `compiled`
-  caches the compiled `predict` by input shapes (compiled before timing) across calls. Batches with
-  ego-motion flow and labels add "three_way" (metrics.ThreeWayAverage); save_dir: every pair's flow
-  (jaxflow.export)."""
+def _process_batches(dataset, batch_size: int, num_points: int | None, seed: int):
+  """This process's share of `eval_batches` (every P-th batch) and its number of real pairs."""
+  index, count = jax.process_index(), jax.process_count()
+  batches = eval_batches(dataset, batch_size, num_points, seed=seed, shard=(index, count))
+  starts = range(index * batch_size, len(dataset), count * batch_size)
+  return batches, sum(min(batch_size, len(dataset) - s) for s in starts)
+
+
+def _run(predict, args, batches, render_dir=None, compiled=None, total=None, save_dir=None) -> dict:
+  """Averages the metrics of `predict(*args, pc1, pc2)` over the pairs of `batches` (this
+  process's; the sums are added over processes). `compiled` caches the compiled `predict` by input
+  shapes (compiled before timing) across calls; `total`: the pairs expected, for the progress bar.
+  Batches with ego-motion flow and labels add "three_way" (metrics.ThreeWayAverage); save_dir:
+  every pair's flow (jaxflow.export)."""
   compiled = {} if compiled is None else compiled
   three_way = ThreeWayAverage()
   saver = export.FlowSaver(save_dir) if save_dir is not None else None
   sums = dict.fromkeys(METRICS, 0.0)
   pairs, seconds = 0, 0.0
-  for batch in batches:
-    pc1, pc2 = jnp.asarray(batch["pc1"]), jnp.asarray(batch["pc2"])
-    key = (pc1.shape, pc2.shape)
-    if key not in compiled:
-      compiled[key] = predict.lower(*args, pc1, pc2).compile()
-    start = time.perf_counter()
-    pred = compiled[key](*args, pc1, pc2).block_until_ready()
-    seconds += time.perf_counter() - start
-    per_pair = jax.device_get(_metrics_fn(pred, jnp.asarray(batch["flow"]),
-                                         jnp.asarray(batch["mask"])))
-    valid = np.asarray(batch["pair_valid"], np.float64)
-    for k in METRICS:
-      sums[k] += float(np.sum(np.asarray(per_pair[k], np.float64) * valid))
-    pairs += int(valid.sum())
-    three_way.add(pred, batch)
-    if saver is not None:
-      saver.add(batch, pred)
-    if render_dir is not None:
-      _render(render_dir, batch, np.asarray(pred))
+  bar = tqdm(total=total, desc="evaluating", unit="pair", file=sys.stderr, leave=False,
+             dynamic_ncols=True, mininterval=1.0, disable=not distributed.is_primary())
+  with bar:
+    for batch in batches:
+      pc1, pc2 = jnp.asarray(batch["pc1"]), jnp.asarray(batch["pc2"])
+      key = (pc1.shape, pc2.shape)
+      if key not in compiled:
+        compiled[key] = predict.lower(*args, pc1, pc2).compile()
+      start = time.perf_counter()
+      pred = compiled[key](*args, pc1, pc2).block_until_ready()
+      seconds += time.perf_counter() - start
+      per_pair = jax.device_get(_metrics_fn(pred, jnp.asarray(batch["flow"]),
+                                           jnp.asarray(batch["mask"])))
+      valid = np.asarray(batch["pair_valid"], np.float64)
+      for k in METRICS:
+        sums[k] += float(np.sum(np.asarray(per_pair[k], np.float64) * valid))
+      pairs += int(valid.sum())
+      three_way.add(pred, batch)
+      if saver is not None:
+        saver.add(batch, pred)
+      bar.update(int(valid.sum()))
+      if render_dir is not None:
+        _render(render_dir, batch, np.asarray(pred))
+  *totals, pairs, seconds = distributed.sum_over_processes([*sums.values(), pairs, seconds])
+  sums, pairs = dict(zip(METRICS, totals)), int(pairs)
+  three_way.reduce(distributed.sum_over_processes)
   if pairs == 0:
     raise ConfigError("the evaluation dataset holds no pairs")
   results = {k: sums[k] / pairs for k in METRICS}
@@ -113,8 +134,9 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
   test-time optimisation included when `optimise.steps` > 0); save_flows: a folder that receives
   the flow of every pair (jaxflow.export; the points evaluated: sampled unless num_points None)."""
   predict = model_predict_fn(model, num_iters, refine, optimise)
-  batches = eval_batches(dataset, batch_size, num_points, seed=seed)
-  results = _run(predict, (params,), batches, render_dir, save_dir=save_flows)
+  batches, total = _process_batches(dataset, batch_size, num_points, seed)
+  results = _run(predict, (distributed.local_copy(params),), batches, render_dir, total=total,
+                 save_dir=save_flows)
   results["output"] = _output_name(refine, optimise)
   if optimise.steps:
     results["test_time"] = dataclasses.asdict(optimise)
@@ -123,14 +145,16 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
 
 class Evaluator:
   """`evaluate` for repeated calls on the same pairs with new parameters (the held-out evaluation
-  during training): the batches are sampled once and kept, the model is compiled once, and a call
+  during training): the model is compiled once, every call re-samples the same pairs (seeded, so
+  the same batches; nothing is kept between calls: memory does not grow with the pairs), and a call
   with the very same parameter arrays as the previous one (jax arrays are immutable) returns its
   results again (the end-of-run evaluation of a step just evaluated)."""
 
   def __init__(self, model, dataset, *, num_points: int | None, batch_size: int,
                num_iters: int = 32, refine: bool = False, seed: int = 0,
                optimise: test_time.Settings = test_time.Settings()):
-    self.batches = list(eval_batches(dataset, batch_size, num_points, seed=seed))
+    self.sampling = dict(dataset=dataset, batch_size=batch_size, num_points=num_points, seed=seed)
+    eval_batches(**self.sampling)  # checks the arguments now (a generator would check them later)
     self.predict = model_predict_fn(model, num_iters, refine, optimise)
     self.output = _output_name(refine, optimise)
     self.compiled = {}
@@ -141,14 +165,17 @@ class Evaluator:
     last_leaves, last_results = self._last
     if len(leaves) == len(last_leaves) and all(a is b for a, b in zip(leaves, last_leaves)):
       return dict(last_results)
-    results = _run(self.predict, (params,), self.batches, compiled=self.compiled)
+    batches, total = _process_batches(**self.sampling)
+    results = _run(self.predict, (distributed.local_copy(params),), batches,
+                   compiled=self.compiled, total=total)
     results["output"] = self.output
     self._last = (leaves, dict(results))
     return results
 
   def zero_flow(self) -> dict:
-    """`evaluate_zero_flow` on the same kept pairs."""
-    return _run(_zero_flow, (), self.batches)
+    """`evaluate_zero_flow` on the same pairs."""
+    batches, total = _process_batches(**self.sampling)
+    return _run(_zero_flow, (), batches, total=total)
 
 
 _zero_flow = jax.jit(lambda pc1, pc2: jnp.zeros_like(pc1))
@@ -156,7 +183,8 @@ _zero_flow = jax.jit(lambda pc1, pc2: jnp.zeros_like(pc1))
 
 def evaluate_zero_flow(dataset, *, num_points: int | None, batch_size: int, seed: int = 0) -> dict:
   """The same metrics for a zero-flow prediction on the same pairs (the trivial baseline)."""
-  return _run(_zero_flow, (), eval_batches(dataset, batch_size, num_points, seed=seed))
+  batches, total = _process_batches(dataset, batch_size, num_points, seed)
+  return _run(_zero_flow, (), batches, total=total)
 
 
 def _render(render_dir, batch, pred_BxNx3):
@@ -199,13 +227,11 @@ def load_model(checkpoint=None, config: ml_collections.ConfigDict | None = None,
   except RUNTIME_MODEL_FIELDS, which change no parameter and are taken from `config`.
   `refine` says whether the checkpoint's refinement was trained (stage 2).
   """
-  from jaxflow import training  # training imports this module
-
   if checkpoint is None:
     if not SHIPPED_CHECKPOINT.exists():
       raise CheckpointError(f"no checkpoint given and no shipped checkpoint at {SHIPPED_CHECKPOINT}")
     checkpoint = SHIPPED_CHECKPOINT
-  state, saved, step = training.restore_checkpoint(checkpoint)
+  state, saved, step = checkpointing.restore_checkpoint(checkpoint)
   if config is not None:
     runtime = [k for k in model_fields if k in RUNTIME_MODEL_FIELDS]
     checked = [k for k in model_fields if k not in RUNTIME_MODEL_FIELDS]
@@ -244,6 +270,8 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
                      optimise=test_time.settings_from_config(config.eval), save_flows=save_flows)
   results.update(dataset=dataset, split=split, checkpoint=str(checkpoint), step=step,
                  num_points=config.eval.num_points, num_iters=config.eval.num_iters)
+  if not distributed.is_primary():
+    return results
   print(format_table([(f"{dataset} ({split})", results)]))
   if "three_way" in results:
     print(format_three_way([(f"{dataset} ({split})", results)]))

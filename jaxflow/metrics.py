@@ -100,6 +100,14 @@ class ThreeWayAverage:
           self.counts[k] += 1
       self.pairs += 1
 
+  def reduce(self, sum_fn):
+    """Replaces the sums and counts by `sum_fn` of them (the sum over processes)."""
+    values = sum_fn([*self.sums.values(), *self.counts.values(), self.pairs])
+    n = len(THREE_WAY)
+    self.sums = dict(zip(THREE_WAY, map(float, values[:n])))
+    self.counts = dict(zip(THREE_WAY, map(int, values[n:2 * n])))
+    self.pairs = int(values[-1])
+
   def results(self) -> dict:
     if not self.pairs:
       return {}

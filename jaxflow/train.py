@@ -11,13 +11,14 @@ of that name when the working directory has none.
 import sys
 from pathlib import Path
 
-from jaxflow import cli, training
+from jaxflow import cli, distributed, training
 
 
 def _define_flags():
   from absl import flags  # pylint: disable=import-outside-toplevel
   from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
 
+  distributed.define_flags()
   flags.DEFINE_string("workdir", None, "Folder for checkpoints, metrics and results.")
   config_flags.DEFINE_config_file("config", None, "Training config file (FILE.py[:ARG]; "
                                   "--print_config lists its fields).", lock_config=True)
@@ -41,6 +42,7 @@ def main(argv):
 
   if len(argv) > 1:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
+  distributed.initialize_from_flags()
   workdir = flags.FLAGS.workdir
   if not workdir:
     cli.fail("--workdir is required: the folder for the run's checkpoints, metrics and results")

@@ -1,8 +1,10 @@
-"""Training: the train state, the pure train step and the loop, `train_and_evaluate(config, workdir)`.
+"""Training: the pure train step and the loop, `train_and_evaluate(config, workdir)`.
 
 Steps are counted in updates: step s is the s-th update (it consumed batch s - 1 of the loader), and
 checkpoint s holds the state after it. Rerunning the same command resumes from the newest checkpoint;
-`BatchLoader.batch(step)` is deterministic, so the resumed run replays the same data order.
+`BatchLoader.batch(step)` is deterministic, so the resumed run replays the same data order. A workdir
+resumed with another recipe is refused (`checkpointing.recipe_differences`) unless
+`config.train.resume_with_new_recipe` is set, which records the change in the stored config.
 
 Two stages (paper 4.1). Stage 1 trains everything but the refinement with the sequence loss (from
 scratch, or warm-started from another run's parameters with `config.train.init_from`). Stage 2
@@ -10,127 +12,39 @@ loads stage 1 (`config.train.init_from`) and trains only the refinement with the
 gradient is taken only w.r.t. the trainable parameters (the others are closed over), the optimiser
 is an `optax.multi_transform` whose frozen group is `set_to_zero` (no optimiser state), and the model
 runs with `freeze_backbone=True`.
+
+Many processes (jaxflow.distributed): one mesh over every process's devices, each process loads its
+rows of every global batch, all of them save checkpoints together; process 0 writes the files.
 """
 
-import contextlib
-import functools
+import dataclasses
 import json
-import math
-import re
 import signal
 import sys
-import threading
 import time
 from pathlib import Path
-from typing import Any
 
-import flax
 import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import optax
-from flax import traverse_util
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from tqdm import tqdm
 
-from jaxflow import checkpointing, curves, evaluation, test_time
+from jaxflow import checkpointing, curves, distributed, evaluation, test_time
+from jaxflow.checkpointing import restore_checkpoint  # noqa: F401 (training.restore_checkpoint)
 from jaxflow.data import BatchLoader, open_dataset
-from jaxflow.errors import CheckpointError, ConfigError, NonFiniteError
+from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.losses import refinement_loss, sequence_loss
 from jaxflow.metrics import METRICS
 from jaxflow.model import PARAMETER_FREE_FIELDS, build_model
+from jaxflow.run_log import Interrupted, MetricsLog, PendingMetrics, StopSignals  # noqa: F401
+from jaxflow.train_state import (  # noqa: F401 (the train state's API, also from here)
+  REFINE, TrainState, abstract_train_state, create_train_state, init_params, learning_rate,
+  make_optimizer, merge_params, param_labels, split_params, trainable_pattern)
 
 BATCH_KEYS = ("pc1", "pc2", "flow", "mask")
-REFINE = "refine"  # top-level parameter name of the refinement module.
-
-
-@flax.struct.dataclass
-class TrainState:
-  step: jax.Array  # int32 scalar: updates applied so far.
-  params: Any
-  opt_state: Any
-
-
-class Interrupted(Exception):
-  """Training stopped on SIGTERM/SIGINT after saving a checkpoint at `step`."""
-
-  def __init__(self, signum: int, step: int, path):
-    self.signum, self.step = signum, step
-    name = signal.Signals(signum).name
-    super().__init__(
-      f"stopped by {name} at step {step}; checkpoint saved in {path}; "
-      "rerun the same command to resume"
-    )
-
-
-# Parameters and the optimiser.
-
-
-def trainable_pattern(stage: int) -> str:
-  """Regex over '/'-joined parameter paths selecting what a stage trains."""
-  return rf"^(?!{REFINE}/)" if stage == 1 else rf"^{REFINE}/"
-
-
-def split_params(params, pattern: str) -> tuple[dict, dict]:
-  """(trainable, frozen): flat {path: leaf} dicts of the leaves whose path matches / does not."""
-  flat = traverse_util.flatten_dict(params, sep="/")
-  trainable = {k: v for k, v in flat.items() if re.search(pattern, k)}
-  frozen = {k: v for k, v in flat.items() if k not in trainable}
-  return trainable, frozen
-
-
-def merge_params(*flat_dicts: dict):
-  merged = {}
-  for d in flat_dicts:
-    merged.update(d)
-  return traverse_util.unflatten_dict(merged, sep="/")
-
-
-def param_labels(params, pattern: str):
-  """'train' / 'frozen' for every leaf, by its path: the mask of `optax.multi_transform`."""
-  trainable, frozen = split_params(params, pattern)
-  return merge_params(
-    {k: "train" for k in trainable}, {k: "frozen" for k in frozen}
-  )
-
-
-def learning_rate(config: ml_collections.ConfigDict, total_steps: int) -> optax.Schedule:
-  if config.train.schedule == "constant":
-    return optax.constant_schedule(config.train.lr)
-  if config.train.schedule == "cosine":
-    return optax.cosine_decay_schedule(config.train.lr, max(total_steps, 1))
-  raise ConfigError(f"config.train.schedule must be 'constant' or 'cosine', got "
-                    f"{config.train.schedule!r}")
-
-
-def make_optimizer(config: ml_collections.ConfigDict, total_steps: int):
-  """Adam on the stage's trainable parameters; the rest get zero updates and hold no state."""
-  pattern = trainable_pattern(config.train.stage)
-  return optax.multi_transform(
-    {"train": optax.adam(learning_rate(config, total_steps)), "frozen": optax.set_to_zero()},
-    functools.partial(param_labels, pattern=pattern),
-  )
-
-
-def init_params(model, config: ml_collections.ConfigDict, rng):
-  """Freshly initialised parameters (the shapes do not depend on the number of points)."""
-  n = max(config.model.knn, 32)
-  pc = jnp.zeros((1, n, 3), jnp.float32) + jnp.linspace(0.0, 1.0, n)[None, :, None]
-  return jax.jit(functools.partial(model.init, num_iters=1))(rng, pc, pc)["params"]
-
-
-def create_train_state(params, tx) -> TrainState:
-  return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=tx.init(params))
-
-
-def abstract_train_state(model, tx, config, sharding=None) -> TrainState:
-  """Shapes, dtypes (and `sharding`) of the train state: orbax's restore target."""
-  shapes = jax.eval_shape(
-    lambda rng: create_train_state(init_params(model, config, rng), tx), jax.random.key(0)
-  )
-  sharding = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), shapes)
 
 
 def augmentation(config) -> dict | None:
@@ -178,14 +92,17 @@ def make_train_step(model, tx, config: ml_collections.ConfigDict):
   return train_step
 
 
+
+
 def global_norm(tree) -> jax.Array:
   """sqrt of the sum of squares of every leaf (optax.global_norm, without its deprecation)."""
   return jnp.sqrt(sum(jnp.sum(jnp.square(x)) for x in jax.tree.leaves(tree)))
 
 
 def make_mesh(devices=None) -> Mesh:
-  """A 1-D mesh over the local devices: batches are split over 'data', parameters replicated."""
-  return Mesh(np.asarray(devices if devices is not None else jax.local_devices()), ("data",))
+  """A 1-D mesh over the devices of every process (or `devices`): batches are split over 'data',
+  parameters replicated."""
+  return distributed.global_mesh() if devices is None else Mesh(np.asarray(devices), ("data",))
 
 
 def jit_train_step(model, tx, config, mesh: Mesh):
@@ -200,25 +117,15 @@ def jit_train_step(model, tx, config, mesh: Mesh):
 
 
 def device_batch(batch: dict, mesh: Mesh) -> dict:
-  """The arrays of a loader batch, split on their leading (pair) axis over the mesh."""
-  return jax.device_put({k: batch[k] for k in BATCH_KEYS}, NamedSharding(mesh, P("data")))
+  """The global batch, split on its leading (pair) axis over the mesh, from this process's rows
+  of it (`batch`: a loader batch of those rows, `distributed.local_rows`)."""
+  sharding = NamedSharding(mesh, P("data"))
+  local = {k: batch[k] for k in BATCH_KEYS}
+  rows = len(local["pc1"]) * mesh.size // len(mesh.local_devices)
+  return distributed.global_batch(local, sharding, rows)
 
 
-# Checkpoints.
-
-
-def restore_checkpoint(path, step: int | None = None):
-  """(TrainState, config, step) of a workdir, checkpoints folder or step folder; the model and
-  optimiser are rebuilt from the config stored in the checkpoint."""
-  ckpts, latest, config = checkpointing.open_checkpoint(path)
-  step = latest if step is None else step
-  with contextlib.closing(ckpts):  # on errors too: a notebook goes on after a CheckpointError
-    try:
-      model = build_model(config.model)
-    except (ValueError, TypeError) as e:
-      raise CheckpointError(f"{ckpts.step_dir(step)}: its config does not build a model ({e})")
-    target = abstract_train_state(model, make_optimizer(config, 1), config)
-    return ckpts.restore_state(step, target), config, step
+# Starting: a fresh state or the workdir's newest checkpoint.
 
 
 def _load_init_params(params, config):
@@ -246,53 +153,6 @@ def _load_init_params(params, config):
   return {**params, **loaded}
 
 
-# Host-side bookkeeping: metrics.jsonl, the progress bar, signals.
-
-
-class MetricsLog:
-  """Appends one JSON object per logged step to WORKDIR/metrics.jsonl."""
-
-  def __init__(self, path: Path, resume_step: int):
-    self.path = path
-    if path.exists():  # drop lines logged after the checkpoint we resume from (replayed now)
-      keep = [l for l in path.read_text().splitlines() if l and json.loads(l)["step"] <= resume_step]
-      path.write_text("".join(l + "\n" for l in keep))
-
-  def write(self, record: dict):
-    with self.path.open("a") as f:
-      f.write(json.dumps(record) + "\n")
-
-
-class StopSignals:
-  """Turns SIGTERM/SIGINT into a flag the loop polls; a second signal interrupts at once."""
-
-  def __init__(self):
-    self.signum = None
-    self._previous = {}
-
-  def _handle(self, signum, frame):
-    if self.signum is not None:
-      raise KeyboardInterrupt
-    self.signum = signum
-
-  def __enter__(self):
-    if threading.current_thread() is threading.main_thread():
-      for s in (signal.SIGTERM, signal.SIGINT):
-        self._previous[s] = signal.signal(s, self._handle)
-    return self
-
-  def __exit__(self, *exc):
-    for s, h in self._previous.items():
-      signal.signal(s, h)
-
-
-def _finite(x) -> bool:
-  return x is not None and math.isfinite(x)
-
-
-# The loop.
-
-
 def _check_config(config, n_devices: int):
   t = config.train
   if t.stage not in (1, 2):
@@ -313,147 +173,181 @@ def _check_config(config, n_devices: int):
                       f"config.eval.dataset (got {config.eval.dataset!r})")
 
 
-def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState:
-  """Trains (resuming from WORKDIR/checkpoints when it holds one), then evaluates on
-  `config.eval.dataset` and writes WORKDIR/eval.json (the model and zero flow on the same pairs)."""
+@dataclasses.dataclass
+class Run:
+  """What the loop needs of a run, made once by `prepare`."""
+  config: ml_collections.ConfigDict
+  workdir: Path
+  mesh: Mesh
+  model: object
+  tx: object
+  loader: BatchLoader
+  total_steps: int
+  ckpts: checkpointing.Checkpoints
+  recipe_changes: list  # [{"step": s, "changed": [...]}]: resumes with another recipe
+  heldout: evaluation.Evaluator | None = None  # with eval.every: compiled once, reused at the end
+
+
+def prepare(config: ml_collections.ConfigDict, workdir) -> Run:
+  """Checks the config, opens the training data (this process's rows of each batch) and the
+  workdir's checkpoints; nothing is written before the model is known to build."""
   workdir = Path(workdir).absolute()
   mesh = make_mesh()
   _check_config(config, mesh.size)
-
   dataset = open_dataset(config.data.dataset, split=config.data.split)
+  rows = distributed.local_rows(NamedSharding(mesh, P("data")), config.train.batch_size)
   loader = BatchLoader(
     dataset, config.train.batch_size, config.data.num_points, seed=config.seed, shuffle=True,
     augment=augmentation(config), skip_broken=config.data.skip_broken,
     prefetch=config.data.prefetch, crop_from=config.data.crop_from,
-    crop_mask_outside=config.data.crop_mask_outside,
+    crop_mask_outside=config.data.crop_mask_outside, rows=rows,
   )
   total_steps = config.train.num_steps or config.train.num_epochs * loader.steps_per_epoch
   tx = make_optimizer(config, total_steps)
-  schedule = learning_rate(config, total_steps)
-  replicated = NamedSharding(mesh, P())
   try:  # the model's own checks (fields, widths) fail here, before anything is written
     model = build_model(config.model)
-    target = abstract_train_state(model, tx, config, replicated)
+    jax.eval_shape(lambda rng: init_params(model, config, rng), jax.random.key(0))
   except (ValueError, TypeError) as e:
     raise ConfigError(f"config.model does not make a model: {e}") from e
   workdir.mkdir(parents=True, exist_ok=True)
   ckpts = checkpointing.Checkpoints(workdir / "checkpoints", max_to_keep=config.train.max_to_keep)
+  return Run(config, workdir, mesh, model, tx, loader, total_steps, ckpts, [])
 
+
+def start_state(run: Run) -> tuple[TrainState, int]:
+  """(state, step): the newest checkpoint's when the workdir holds one and was trained with this
+  model, stage and recipe; otherwise a fresh (or `train.init_from`) state at step 0."""
+  config, ckpts = run.config, run.ckpts
+  replicated = NamedSharding(run.mesh, P())
   start = ckpts.latest_step()
-  if start is not None:
-    saved = ckpts.restore_config(start)
-    diffs = checkpointing.model_differences(saved, config, ignore=evaluation.RUNTIME_MODEL_FIELDS)
-    if saved.train.stage != config.train.stage:
-      diffs.append(f"train.stage: {saved.train.stage} != {config.train.stage}")
-    if diffs:
-      raise ConfigError(
-        f"{workdir} holds a run with a different model or stage ({'; '.join(diffs)}); "
-        "use another --workdir"
-      )
-    state = ckpts.restore_state(start, target)
-    print(f"resuming from {ckpts.step_dir(start)}", file=sys.stderr)
-  else:
-    start = 0
-    params = init_params(model, config, jax.random.key(config.seed))
+  if start is None:
+    params = init_params(run.model, config, jax.random.key(config.seed))
     params = _load_init_params(params, config)
-    state = jax.device_put(create_train_state(params, tx), replicated)
-  checkpointing.write_config(config, workdir)
+    host = jax.device_get(create_train_state(params, run.tx))
+    return jax.device_put(host, replicated), 0
+  saved = ckpts.restore_config(start)
+  diffs = checkpointing.model_differences(saved, config, ignore=evaluation.RUNTIME_MODEL_FIELDS)
+  if saved.train.stage != config.train.stage:
+    diffs.append(f"train.stage: {saved.train.stage} != {config.train.stage}")
+  if diffs:
+    raise ConfigError(
+      f"{run.workdir} holds a run with a different model or stage ({'; '.join(diffs)}); "
+      "use another --workdir"
+    )
+  run.recipe_changes = list(checkpointing.config_to_dict(saved).get("recipe_changes", []))
+  recipe = checkpointing.recipe_differences(saved, config)
+  if recipe and not config.train.get("resume_with_new_recipe", False):
+    raise ConfigError(
+      f"{ckpts.step_dir(start)} was trained with another recipe ({'; '.join(recipe)}; checkpoint "
+      "!= config): rerun with its recipe, use another --workdir, or continue with this one: "
+      "--config.train.resume_with_new_recipe=True"
+    )
+  if recipe:
+    run.recipe_changes.append({"step": start, "changed": recipe})
+    print(f"continuing with a new recipe from step {start}: {'; '.join(recipe)}", file=sys.stderr)
+  target = abstract_train_state(run.model, run.tx, config, replicated)
+  state = ckpts.restore_state(start, target)
+  print(f"resuming from {ckpts.step_dir(start)}", file=sys.stderr)
+  return state, start
 
-  train_step = jit_train_step(model, tx, config, mesh)
-  log = MetricsLog(workdir / "metrics.jsonl", start)
+
+# The loop.
+
+
+def save(run: Run, step: int, state: TrainState):
+  """A checkpoint at `step` (every process), then config.json beside it (process 0)."""
+  if run.ckpts.save(step, state, run.config, run.recipe_changes) and distributed.is_primary():
+    checkpointing.write_config(run.config, run.workdir, run.recipe_changes)
+
+
+def train(run: Run, state: TrainState, start: int) -> TrainState:
+  """Steps `start` .. total_steps: logs, saves, evaluates on held-out pairs every eval.every
+  steps, and on SIGTERM/SIGINT saves and raises `Interrupted`."""
+  config, primary = run.config, distributed.is_primary()
+  train_step = jit_train_step(run.model, run.tx, config, run.mesh)
   heldout, eval_log = None, None
   if config.eval.every:
-    heldout = heldout_evaluator(config)
-    eval_log = MetricsLog(workdir / "eval_metrics.jsonl", start)
-  pairs_per_step = config.train.batch_size
-  pending = []  # (step, metrics on device) since the last fetch
-  window_start = time.perf_counter()
+    heldout = run.heldout = heldout_evaluator(config)
+    eval_log = MetricsLog(run.workdir / "eval_metrics.jsonl", start, enabled=primary)
+  last_good = lambda: run.ckpts.steps() and run.ckpts.step_dir(run.ckpts.steps()[-1])
+  bar = tqdm(total=run.total_steps, initial=start, desc=f"stage {config.train.stage}",
+             unit="step", dynamic_ncols=True, mininterval=1.0, file=sys.stderr,
+             disable=not primary)
+  pending = PendingMetrics(MetricsLog(run.workdir / "metrics.jsonl", start, enabled=primary),
+                           learning_rate(config, run.total_steps), config.train.batch_size,
+                           config.train.stage, bar, last_good)
+  step = start
+  with bar, StopSignals() as stop:
+    if step < run.total_steps:
+      for batch_index, batch in run.loader.iterate(start):
+        state, metrics = train_step(state, device_batch(batch, run.mesh))
+        step = batch_index + 1
+        pending.append(step, metrics)
+        bar.update(1)
+        if step % config.train.log_every == 0:
+          pending.flush(step)
+        if step % config.train.checkpoint_every == 0 or step == run.total_steps:
+          pending.flush(step)  # never save a state whose step produced a non-finite value
+          save(run, step, state)
+        if heldout is not None and step % config.eval.every == 0:
+          started = time.perf_counter()
+          results = heldout(state.params)
+          eval_log.write({"step": step, "stage": config.train.stage, "time": time.time(),
+                          **{k: results[k] for k in (*METRICS, "pairs")}})
+          bar.write(f"step {step}: held-out EPE {results['epe']:.4f} m "
+                    f"({config.eval.dataset}, {results['pairs']} pairs)", file=sys.stderr)
+          pending.pause(time.perf_counter() - started)  # pairs_per_s counts training alone
+        if _stop_requested(stop, step, config.train.log_every):
+          pending.flush(step)
+          save(run, step, state)
+          if primary:
+            curves.plot_learning_curve(run.workdir)
+          raise Interrupted(stop.signum or signal.SIGTERM, step, run.ckpts.step_dir(step))
+        if step >= run.total_steps:
+          break
+    pending.flush(step)
+    save(run, step, state)
+  return state
 
-  def fetch_and_log(step: int):
-    """Reads the pending metrics (one host sync), logs them, stops on a non-finite value."""
-    nonlocal pending, window_start
-    if not pending:
-      return
-    fetched = jax.device_get([m for _, m in pending])
-    steps = [s for s, _ in pending]
-    elapsed = time.perf_counter() - window_start
-    pending, window_start = [], time.perf_counter()
-    record = {
-      "step": step,
-      "loss": float(np.mean([m["loss"] for m in fetched])),
-      "grad_norm": float(np.mean([m["grad_norm"] for m in fetched])),
-      "param_norm": float(fetched[-1]["param_norm"]),
-      "pairs_per_s": len(steps) * pairs_per_step / max(elapsed, 1e-9),
-      "lr": float(schedule(step - 1)),
-      "stage": config.train.stage,
-      "time": time.time(),
-    }
-    log.write({k: (v if not isinstance(v, float) or _finite(v) else None)
-               for k, v in record.items()})
-    bar.set_postfix(loss=f"{record['loss']:.4f}", pairs_s=f"{record['pairs_per_s']:.1f}")
-    for s, m in zip(steps, fetched):
-      if not (_finite(float(m["loss"])) and _finite(float(m["grad_norm"]))):
-        last = ckpts.steps()
-        raise NonFiniteError(
-          f"non-finite loss or gradient at step {s} (loss={float(m['loss'])}, "
-          f"grad_norm={float(m['grad_norm'])}); that state was not saved; last good checkpoint: "
-          + (str(ckpts.step_dir(last[-1])) if last else "none")
-        )
 
-  def save(step: int):
-    fetch_and_log(step)  # never save a state whose step produced a non-finite value
-    ckpts.save(step, state, config)
+def _stop_requested(stop: StopSignals, step: int, every: int) -> bool:
+  """Whether a signal asked to stop: at once in one process; in many, every `every` steps, when
+  all of them agree (a signal to any one stops them all at the same step)."""
+  if jax.process_count() == 1:
+    return stop.signum is not None
+  if step % every:
+    return False
+  return bool(distributed.sum_over_processes([stop.signum is not None])[0])
 
-  bar = tqdm(total=total_steps, initial=start, desc=f"stage {config.train.stage}", unit="step",
-             dynamic_ncols=True, mininterval=1.0, file=sys.stderr)
-  try:
-    with StopSignals() as stop:
-      step = start
-      if step < total_steps:
-        for batch_index, batch in loader.iterate(start):
-          state, metrics = train_step(state, device_batch(batch, mesh))
-          step = batch_index + 1
-          pending.append((step, metrics))
-          if len(pending) > 2:
-            # Waits for the step before last (no transfer; the device keeps the next one queued):
-            # keeps the progress bar and a stop signal within two steps of the device.
-            jax.block_until_ready(pending[-3][1]["loss"])
-          bar.update(1)
-          if step % config.train.log_every == 0:
-            fetch_and_log(step)
-          if step % config.train.checkpoint_every == 0 or step == total_steps:
-            save(step)
-          if heldout is not None and step % config.eval.every == 0:
-            started = time.perf_counter()
-            results = heldout(state.params)
-            eval_log.write({"step": step, "stage": config.train.stage, "time": time.time(),
-                            **{k: results[k] for k in (*METRICS, "pairs")}})
-            bar.write(f"step {step}: held-out EPE {results['epe']:.4f} m "
-                      f"({config.eval.dataset}, {results['pairs']} pairs)", file=sys.stderr)
-            window_start += time.perf_counter() - started  # pairs_per_s counts training alone
-          if stop.signum is not None:
-            save(step)
-            curves.plot_learning_curve(workdir)
-            raise Interrupted(stop.signum, step, ckpts.step_dir(step))
-          if step >= total_steps:
-            break
-      fetch_and_log(step)
-      ckpts.save(step, state, config)
-  finally:
-    bar.close()
-    ckpts.close()
 
-  if loader.broken:
-    print(f"skipped {len(loader.broken)} unreadable sample(s) in training: "
-          + ", ".join(map(str, loader.broken)), file=sys.stderr)
+def finish(run: Run, state: TrainState):
+  """The end-of-run evaluation (eval.json and the table) and the learning curve (process 0)."""
+  config = run.config
+  if run.loader.broken:
+    print(f"skipped {len(run.loader.broken)} unreadable sample(s) in training: "
+          + ", ".join(map(str, run.loader.broken)), file=sys.stderr)
   if config.eval.dataset:
-    results = evaluate_run(state.params, config, heldout)
-    (workdir / "eval.json").write_text(json.dumps(results, indent=2) + "\n")
-    print(evaluation.format_table(
-      [(f"{config.eval.dataset} ({config.eval.split})", results["model"]),
-       ("zero flow", results["zero_flow"])]
-    ))
-  curves.plot_learning_curve(workdir)
+    results = evaluate_run(state.params, config, run.heldout)
+    if distributed.is_primary():
+      (run.workdir / "eval.json").write_text(json.dumps(results, indent=2) + "\n")
+      print(evaluation.format_table(
+        [(f"{config.eval.dataset} ({config.eval.split})", results["model"]),
+         ("zero flow", results["zero_flow"])]
+      ))
+  if distributed.is_primary():
+    curves.plot_learning_curve(run.workdir)
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState:
+  """Trains (resuming from WORKDIR/checkpoints when it holds one), then evaluates on
+  `config.eval.dataset` and writes WORKDIR/eval.json (the model and zero flow on the same pairs)."""
+  run = prepare(config, workdir)
+  try:
+    state, start = start_state(run)
+    state = train(run, state, start)
+  finally:
+    run.ckpts.close()
+  finish(run, state)
   return state
 
 

@@ -1,6 +1,7 @@
 """Stopping and resuming: SIGKILL or SIGTERM mid-run, then the same command, ends with exactly the
 parameters of an uninterrupted run; half-written checkpoints are never loaded."""
 
+import json
 import os
 import shutil
 import signal
@@ -130,3 +131,42 @@ def test_half_written_checkpoints_are_not_loaded(uninterrupted_dir, tmp_path):
     training.restore_checkpoint(workdir)
   _, _, step = training.restore_checkpoint(run_dir / str(TOTAL_STEPS))  # an explicit step
   assert step == TOTAL_STEPS
+
+
+def smoke_config(**overrides):
+  from jaxflow.configs import default
+
+  config = default.get_config("smoke")
+  config.eval.dataset = ""
+  for key, value in overrides.items():
+    section, field = key.split("__")
+    config[section][field] = value
+  return config
+
+
+def test_resume_with_another_recipe_is_refused_unless_asked(uninterrupted_dir, tmp_path):
+  from jaxflow.errors import ConfigError
+
+  workdir = tmp_path / "run"
+  shutil.copytree(uninterrupted_dir, workdir)
+  before = (workdir / "config.json").read_bytes()
+  other = smoke_config(data__dataset="synthetic_lidar:16", train__lr=2e-3, train__log_every=3)
+  with pytest.raises(ConfigError) as e:
+    training.train_and_evaluate(other, workdir)
+  message = str(e.value)
+  assert "\n" not in message and "resume_with_new_recipe" in message
+  assert "data.dataset: 'synthetic_lidar:32' != 'synthetic_lidar:16'" in message
+  assert "train.lr: 0.001 != 0.002" in message and "log_every" not in message
+  assert (workdir / "config.json").read_bytes() == before  # nothing written on a refusal
+  # Asked explicitly, and run longer: the change is recorded beside the new checkpoint.
+  extended = TOTAL_STEPS + 2
+  asked = smoke_config(train__lr=2e-3, train__num_steps=extended, train__resume_with_new_recipe=True)
+  training.train_and_evaluate(asked, workdir)
+  written = json.loads((workdir / "config.json").read_text())
+  _, stored, step = training.restore_checkpoint(workdir)
+  assert step == extended and written["train"]["lr"] == stored.train.lr == 2e-3
+  assert written["recipe_changes"] == [{"step": TOTAL_STEPS, "changed": ["train.lr: 0.001 != 0.002"]}]
+  assert checkpointing.config_to_dict(stored)["recipe_changes"] == written["recipe_changes"]
+  # The earlier checkpoints keep the recipe they were trained with.
+  _, older, _ = training.restore_checkpoint(workdir / "checkpoints" / str(TOTAL_STEPS))
+  assert older.train.lr == 1e-3 and "recipe_changes" not in older

@@ -322,3 +322,42 @@ def test_data_parallel_over_two_devices_matches_one_device(tmp_path):
   # Adam's first update is ~lr * sign(gradient): allow a fraction of lr where a gradient is ~0.
   for i, leaf in enumerate(leaves):
     np.testing.assert_allclose(two[str(i)], leaf, rtol=0, atol=0.1 * config.train.lr)
+
+
+def package_imports() -> dict[str, set[str]]:
+  """{module: the jaxflow modules it imports}, at any depth of its code (inside functions too)."""
+  import ast
+
+  root = REPO / "jaxflow"
+  modules = {".".join(p.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__"): p
+             for p in root.rglob("*.py")}
+  edges = {}
+  for name, path in modules.items():
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+      if isinstance(node, ast.Import):
+        found |= {a.name for a in node.names}
+      elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+        found |= {f"{node.module}.{a.name}" for a in node.names} | {node.module}
+    edges[name] = {m for m in found if m in modules and m not in ("jaxflow", name)}
+  return edges
+
+
+def test_the_package_imports_form_no_cycle():
+  edges, state, path = package_imports(), {}, []
+
+  def visit(m):
+    state[m] = "open"
+    path.append(m)
+    for n in sorted(edges[m]):
+      assert state.get(n) != "open", "import cycle: " + " -> ".join(path[path.index(n):] + [n])
+      if n not in state:
+        visit(n)
+    path.pop()
+    state[m] = "done"
+
+  for m in sorted(edges):
+    if m not in state:
+      visit(m)
+  assert {"jaxflow.checkpointing", "jaxflow.train_state"} <= set(edges["jaxflow.training"])
+  assert "jaxflow.training" not in edges["jaxflow.evaluation"] | edges["jaxflow.checkpointing"]

@@ -96,6 +96,9 @@ def get_config(arg: str = "") -> ml_collections.ConfigDict:
   config.train.log_every = 50  # steps between metric fetches (and metrics.jsonl lines).
   config.train.checkpoint_every = 200  # steps between checkpoints (and one at the end).
   config.train.max_to_keep = 3  # checkpoints kept.
+  # True: resume a workdir whose checkpoints were trained with another data/train recipe, and record
+  # the change in the stored config (`recipe_changes`); False refuses (docs/training.md, Resuming).
+  config.train.resume_with_new_recipe = False
 
   config.eval = ml_collections.ConfigDict()
   config.eval.dataset = "synthetic_lidar:64"  # held-out pairs evaluated at the end ("" skips).

@@ -98,13 +98,16 @@ class BatchLoader:
   crop_from > 0 samples each cloud to crop_from points first (the density to learn, e.g. the test's
   8192) and trains on a window of num_points of them (`sampling.crop_pair`); 0 samples num_points.
   crop_mask_outside masks out of a window's loss the points whose flow leaves pc2's window.
+  rows (start, stop): only the pairs start .. stop - 1 of each global batch (one process's part of
+  it, jaxflow.distributed.local_rows; the same pairs, sampled the same way, as in the whole batch).
   Batch dict: float32 'pc1', 'pc2', 'flow' (B x N x 3), 'mask' (B x N, 1/0) and 'replaced' (int, the
   clouds sampled with replacement because they had fewer than num_points points).
   """
 
   def __init__(self, dataset, batch_size: int, num_points: int, seed: int, shuffle: bool = True,
                augment: dict | None = None, skip_broken: bool = False, prefetch: int = 2,
-               workers: int = 0, crop_from: int = 0, crop_mask_outside: bool = False):
+               workers: int = 0, crop_from: int = 0, crop_mask_outside: bool = False,
+               rows: tuple[int, int] | None = None):
     if batch_size < 1 or num_points < 1 or seed < 0 or prefetch < 0 or workers < 0:
       raise ConfigError("BatchLoader: need batch_size >= 1, num_points >= 1, seed >= 0, prefetch >= 0, "
                         f"workers >= 0; got {batch_size}, {num_points}, {seed}, {prefetch}, "
@@ -123,6 +126,9 @@ class BatchLoader:
     self.workers = workers
     self.crop_from = crop_from
     self.crop_mask_outside = crop_mask_outside
+    self.rows = rows or (0, batch_size)
+    if not 0 <= self.rows[0] < self.rows[1] <= batch_size:
+      raise ConfigError(f"BatchLoader: rows {self.rows} must lie in 0 .. batch_size {batch_size}")
     self.steps_per_epoch = len(dataset) // batch_size
     if self.steps_per_epoch == 0:
       raise ConfigError(f"{getattr(dataset, 'name', 'dataset')}: {len(dataset)} pairs, fewer than "
@@ -181,11 +187,12 @@ class BatchLoader:
     raise DataError(getattr(self.dataset, "name", "dataset"), "every pair is broken")
 
   def batch(self, step: int) -> dict:
-    """The batch of global step `step` (deterministic in (seed, step))."""
+    """This process's rows of the batch of global step `step` (deterministic in (seed, step,
+    rows))."""
     epoch, k = divmod(step, self.steps_per_epoch)
     order = self.order(epoch)
     pairs, replaced = [], 0
-    for position in range(k * self.batch_size, (k + 1) * self.batch_size):
+    for position in range(k * self.batch_size + self.rows[0], k * self.batch_size + self.rows[1]):
       pair, rep = self._pair_at(order, position, epoch)
       pairs.append(pair)
       replaced += rep
@@ -216,7 +223,7 @@ class BatchLoader:
 
 
 def eval_batches(dataset, batch_size: int, num_points: int | None, seed: int = 0,
-                 prefetch: int = 1) -> Iterator[dict]:
+                 prefetch: int = 1, shard: tuple[int, int] = (0, 1)) -> Iterator[dict]:
   """Every pair exactly once, in order; a broken pair raises DataError (evaluation never skips).
 
   Pair i is sampled with np.random.default_rng((seed, i)), so two runs give identical batches;
@@ -224,7 +231,12 @@ def eval_batches(dataset, batch_size: int, num_points: int | None, seed: int = 0
   its last pair; 'pair_valid' (B, float32) is 1 for real pairs, 0 for padding. Besides the
   training keys the dict holds 'names' (list of B str) and, when every pair has them
   (`Pair.has_labels`), 'rigid_flow' (B x N x 3) and 'foreground' (B x N bool), for the three-way EPE.
+  shard (index, count): only the batches index, index + count, ... (one process's share; the same
+  batches as unsharded).
   """
+  index, count = shard
+  if not 0 <= index < count:
+    raise ConfigError(f"eval_batches: shard index must be in 0 .. count - 1, got {shard}")
   if batch_size < 1 or (num_points is not None and num_points < 1):
     raise ConfigError(f"eval_batches: need batch_size >= 1 and num_points >= 1 or None, "
                       f"got {batch_size}, {num_points}")
@@ -248,4 +260,4 @@ def eval_batches(dataset, batch_size: int, num_points: int | None, seed: int = 0
     return {**_stack(pairs), "replaced": replaced, "pair_valid": valid,
             "names": [p.name for p in pairs]}
 
-  return prefetched(make, range(0, n, batch_size), prefetch)
+  return prefetched(make, range(index * batch_size, n, count * batch_size), prefetch)
