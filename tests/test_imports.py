@@ -8,11 +8,6 @@ PACKAGE = Path(__file__).absolute().parent.parent / "jaxflow"
 MAX_LINES = 400
 LONG_ON_PURPOSE = {"jaxflow.data.synthetic"}  # the scene generator: one idea, many scenes
 
-# TEMPORARY, emptied by the lead at the merge: the training <-> evaluation <-> checkpointing circle
-# that another branch removes, and the module it splits. Nothing else may be added here.
-CYCLE_EDGES_UNTIL_MERGE = {("jaxflow.evaluation", "jaxflow.training"),
-                           ("jaxflow.checkpointing", "jaxflow.training")}
-LONG_UNTIL_MERGE = {"jaxflow.training"}
 
 
 def modules(package: Path = PACKAGE) -> dict[str, Path]:
@@ -96,13 +91,11 @@ def test_cycle_finder_finds_cycles_through_function_level_imports(tmp_path):
 def test_no_import_cycle():
   graph = import_graph()
   assert "jaxflow.training" in graph and "jaxflow.data.registry" in graph
-  for a, b in CYCLE_EDGES_UNTIL_MERGE:
-    graph[a].discard(b)
   assert cycles(graph) == []
 
 
 def test_no_module_over_400_lines():
   lines = {name: len(path.read_text().splitlines()) for name, path in modules().items()}
   too_long = {n: c for n, c in lines.items() if c > MAX_LINES
-              and n not in LONG_ON_PURPOSE | LONG_UNTIL_MERGE}
+              and n not in LONG_ON_PURPOSE}
   assert too_long == {}
