@@ -22,6 +22,8 @@ import ml_collections
 import orbax.checkpoint as ocp
 
 from jaxflow.errors import CheckpointError
+# Model fields added after checkpoints were written without them, and the value they had then.
+from jaxflow.model_fields import ADDED_MODEL_FIELDS
 
 ITEMS = ("state", "config")
 _STEP_METADATA = "_CHECKPOINT_METADATA"  # written by orbax into every finalised step folder
@@ -34,10 +36,6 @@ def config_to_dict(config: ml_collections.ConfigDict) -> dict:
 
 def config_from_dict(d: dict) -> ml_collections.ConfigDict:
   return ml_collections.ConfigDict(d)
-
-
-# Model fields added after checkpoints were written without them, and the value they had then.
-ADDED_MODEL_FIELDS = {"infer_truncate_k": 0, "remat_iterations": False}
 
 
 def model_differences(a: ml_collections.ConfigDict, b: ml_collections.ConfigDict,

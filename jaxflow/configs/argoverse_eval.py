@@ -9,12 +9,11 @@ timed). model.corr_chunk builds the correlation in row blocks so memory grows wi
 changes no parameter, so it is taken from this config rather than from the checkpoint.
 """
 
-from jaxflow.configs import default
+from jaxflow.configs import paper
 
 
 def get_config(arg: str = ""):
-  config = default.get_config("eval")
-  config.model = default.model_config()
+  config = paper.get_config()
   config.model.corr_chunk = 2048
   config.eval.dataset = f"argoverse:{arg or 'data/argoverse'}"
   config.eval.split = "test"
