@@ -18,7 +18,7 @@ def tiny_config():
   return config
 
 
-def pair(seed=0, n=40):
+def pair(seed=0, n=32):
   rng = np.random.default_rng(seed)
   pc1 = rng.uniform(-2, 2, (1, n, 3)).astype(np.float32)
   flow = rng.normal(0, 0.2, pc1.shape).astype(np.float32)
@@ -54,8 +54,8 @@ def test_the_estimate_entering_each_iteration_carries_no_gradient():
   config = tiny_config()
   model = build_model(config.model)
   pc1, pc2, gt = pair()
-  params = model.init(jax.random.key(0), pc1, pc2, num_iters=1)["params"]
-  iters = 4
+  params = training.init_params(model, config, jax.random.key(0))
+  iters = 2  # the second iteration's input estimate is the first's output
 
   def loss_of(flows_fn):
     return lambda p: losses.sequence_loss(flows_fn(p), gt)
@@ -80,11 +80,11 @@ def test_stage2_gradient_reaches_the_refinement_only():
   config = tiny_config()
   model = build_model(config.model)
   pc1, pc2, gt = pair(1)
-  params = model.init(jax.random.key(1), pc1, pc2, num_iters=1)["params"]
+  params = training.init_params(model, config, jax.random.key(1))
 
   def grads(freeze):
     def loss(p):
-      out = model.apply({"params": p}, pc1, pc2, num_iters=3, refine=True, freeze_backbone=freeze)
+      out = model.apply({"params": p}, pc1, pc2, num_iters=2, refine=True, freeze_backbone=freeze)
       return losses.refinement_loss(out["refined"], gt)
     return flat(jax.jit(jax.grad(loss))(params))
 
@@ -95,10 +95,11 @@ def test_stage2_gradient_reaches_the_refinement_only():
   assert all(not np.any(frozen[k]) for k in backbone)  # exactly zero, every leaf
   assert all(np.any(frozen[k]) for k in refine if not k.endswith("bias"))
   assert sum(float(jnp.sum(free[k] ** 2)) for k in backbone) > 0
+  scale = max(float(np.max(np.abs(frozen[k]))) for k in refine)
   for k in refine:  # the refinement's own gradient does not depend on the freeze
-    np.testing.assert_allclose(frozen[k], free[k], rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(frozen[k], free[k], rtol=1e-4, atol=1e-6 * scale, err_msg=k)
 
-  config.train.stage, config.train.num_iters = 2, 3
+  config.train.stage, config.train.num_iters = 2, 2
   tx = training.make_optimizer(config, 10)
   batch = {"pc1": pc1, "pc2": pc2, "flow": gt, "mask": jnp.ones(pc1.shape[:2])}
   state, metrics = jax.jit(training.make_train_step(model, tx, config))(
