@@ -16,8 +16,9 @@ PAPER = {
   "train.batch_size": 2,  # "the batch size was set to 2"
   "data.num_points": 8192,  # "we randomly sampled the input point cloud to 8192 points"
   "eval.num_points": 8192,
-  "train.num_iters": 8,  # "The updating numbers of the flow iterator were set to 8 and 32 in the
-  "eval.num_iters": 32,  # training and testing process"
+  # "The updating numbers of the flow iterator were set to 8 and 32 in the training and testing"
+  "train.num_iters": 8,
+  "eval.num_iters": 32,
   "data.split": "train",  # "one-quarter of the training set (4910 samples)"
   "eval.split": "test",  # "total samples in the test set (3824 samples)"
   "train.num_steps": 0,  # epochs, not steps

@@ -254,8 +254,9 @@ def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_referen
   source = tmp_path / "weights.npz"
   np.savez(source, **{k: v for k, v in pvraft_reference.items() if "/" in k})
   out = tmp_path / "imported"
-  done = subprocess.run([sys.executable, "-m", "jaxflow.import_pvraft", str(source), "--out", str(out)],
-                        cwd=ROOT, capture_output=True, text=True)
+  done = subprocess.run(
+    [sys.executable, "-m", "jaxflow.import_pvraft", str(source), "--out", str(out)],
+    cwd=ROOT, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
   state, config, step = training.restore_checkpoint(out)
   # With refinement weights: a trained stage 2, which evaluate.py and predict run refined.

@@ -1,5 +1,5 @@
-r"""Evaluation on Argoverse scene flow (NSFP's preprocessing, 212 test pairs): every point of pc1 that
-has flow (no sampling: num_points 0), 32 iterations, one pair at a time.
+r"""Evaluation on Argoverse scene flow (NSFP's preprocessing, 212 test pairs): every point of pc1
+that has flow (no sampling: num_points 0), 32 iterations, one pair at a time.
 
     python evaluate.py --config configs/argoverse_eval.py --checkpoint runs/ft3d_stage2 \
         --dataset argoverse:data/argoverse

@@ -1,5 +1,6 @@
-r"""Evaluation on KITTI Scene Flow 2015 (HPLFlowNet format, the 142 benchmark frames) as in the paper's
-Table 2: 8192 points per cloud, 32 iterations, one pair at a time (configs/paper.py's evaluation).
+r"""Evaluation on KITTI Scene Flow 2015 (HPLFlowNet format, the 142 benchmark frames) as in the
+paper's Table 2: 8192 points per cloud, 32 iterations, one pair at a time (configs/paper.py's
+evaluation).
 
     python evaluate.py --config configs/kitti_eval.py --checkpoint runs/ft3d_stage2 \
         --dataset kitti:data/KITTI_processed_occ_final

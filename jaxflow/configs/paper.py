@@ -23,7 +23,8 @@ def model_config() -> ml_collections.ConfigDict:
   """The paper's full model (GCL + residual connections + single-gate iterator)."""
   m = ml_collections.ConfigDict()
   m.encoder = "graph"  # "graph": SetConv 32, 64 then GCL 128, 256; "setconv": PV-RAFT 32, 64, 128.
-  m.widths = ()  # encoder widths; () = the encoder's own (graph: 32, 64, 128, 256; setconv: 32, 64, 128).
+  # Encoder widths; () = the encoder's own (graph: 32, 64, 128, 256; setconv: 32, 64, 128).
+  m.widths = ()
   m.residual = True  # residual connections around the GCLs of the graph encoder (paper's RC).
   m.gcl_supports = 3  # L, the number of kernel supports of each GCL.
   m.gcl_similarity = "sum"  # "sum": paper eq. 5; "product": 3D-GCN's ReLU(cos) * <f_j, w(e_l)>.

@@ -16,8 +16,8 @@ what it starts from).
 tools/engine*.py) where it differs from the paper's: stage 1 for 20 epochs on all 17,640 training
 pairs (FT3D's train/ less the 2,000 validation pairs: split "train_all"), stage 2 for 10 epochs
 with 32 iterations in training too. Both train Adam 1e-3 (PV-RAFT's cosine schedule, stepped per
-epoch over num_epochs x 17,640 steps, stays within 1e-6 of it), batch 2, 8192 points, 32 test
-iterations.
+epoch over num_epochs x 17,640 steps, moves it by less than 1e-8 relative), batch 2, 8192 points,
+32 test iterations.
 """
 
 from jaxflow.configs import paper
