@@ -10,8 +10,6 @@ time after compilation, and the same for a training step (batch 2, 8 iterations,
 with --train.
 """
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,10 +29,10 @@ def one_cell_at_a_time(corr_BxNxK, index_BxNxK, cells, scatter):
   return jnp.moveaxis(sums_RxBxN, 0, -1), jnp.moveaxis(counts_RxBxN, 0, -1)
 
 
-# name: (voxel_means' scatter flag, the cell sums it runs)
-FORMS = {"all cells": (False, correlation._cell_sums),
-         "one cell at a time": (True, one_cell_at_a_time),
-         "scatter": (True, correlation._cell_sums)}
+# name: (model.voxel_cells, the cell sums it runs)
+FORMS = {"all cells": ("compare", correlation._cell_sums),
+         "one cell at a time": ("scatter", one_cell_at_a_time),
+         "scatter": ("scatter", correlation._cell_sums)}
 
 
 def temp_mib(jitted, *args):
@@ -56,12 +54,13 @@ def main():
   variables = jax.jit(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, num_iters=1))(pc1, pc2)
   b1 = jnp.concatenate([pc1, pc1 + 1.0])
   gt = jnp.full(b1.shape, 0.1)
-  originals = correlation.voxel_means, correlation._cell_sums
+  originals = correlation._cell_sums
+  base = model
   print(f"{args.config}, {args.points} points, {args.candidates} candidates")
   try:
-    for name, (flag, cell_sums) in FORMS.items():
-      # The model calls these by name: pin the form for this trace.
-      correlation.voxel_means = functools.partial(originals[0], scatter=flag)
+    for name, (form, cell_sums) in FORMS.items():
+      # The model calls the cell sums by name: pin them for this trace.
+      model = base.clone(voxel_cells=form)
       correlation._cell_sums = cell_sums
       forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters)["flows"])
       mem, t = temp_mib(forward, variables, pc1, pc2), timed(forward, variables, pc1, pc2,
@@ -77,7 +76,7 @@ def main():
         line += f" | training step (batch 2, 8 iters) {mem:7.0f} MiB temp, {t:7.2f} s"
       print(line, flush=True)
   finally:
-    correlation.voxel_means, correlation._cell_sums = originals
+    correlation._cell_sums = originals
 
 
 if __name__ == "__main__":

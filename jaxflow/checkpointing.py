@@ -30,6 +30,8 @@ from flax import traverse_util
 from jaxflow import train_state
 from jaxflow.errors import CheckpointError
 from jaxflow.model import build_model
+# Model fields added after checkpoints were written without them, and the value they had then.
+from jaxflow.model_fields import ADDED_MODEL_FIELDS
 
 ITEMS = ("state", "config")
 _STEP_METADATA = "_CHECKPOINT_METADATA"  # written by orbax into every finalised step folder
@@ -45,10 +47,6 @@ def config_to_dict(config: ml_collections.ConfigDict, recipe_changes=None) -> di
 
 def config_from_dict(d: dict) -> ml_collections.ConfigDict:
   return ml_collections.ConfigDict(d)
-
-
-# Model fields added after checkpoints were written without them, and the value they had then.
-ADDED_MODEL_FIELDS = {"infer_truncate_k": 0, "remat_iterations": False}
 
 
 def model_differences(a: ml_collections.ConfigDict, b: ml_collections.ConfigDict,

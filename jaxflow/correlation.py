@@ -16,20 +16,30 @@ import jax
 import jax.numpy as jnp
 
 from jaxflow import geometry
-from jaxflow.layers import GroupNorm
+from jaxflow.layers import GroupNorm, dense, lax_precision
+
+# model.voxel_cells: how the voxel branch adds candidates into their cells (same values, the sums
+# in another order). "scatter": one scatter-add (B x N x K temporaries; XLA's CPU backend runs it
+# in one pass). "compare": every candidate compared with every cell (B x N x K x 27; fused on
+# GPUs and TPUs, where a scatter adds in a varying order). "auto": "scatter" where the program is
+# compiled for the CPU, "compare" elsewhere, decided when XLA lowers it for its device
+# (jax.lax.platform_dependent), not by jax.default_backend() when it is traced.
+VOXEL_CELLS = ("auto", "scatter", "compare")
 
 
-def truncated_correlation(f1_BxNxC, f2_BxMxC, xyz2_BxMx3, k: int, chunk: int = 0):
+def truncated_correlation(f1_BxNxC, f2_BxMxC, xyz2_BxMx3, k: int, chunk: int = 0,
+                          precision: str = "highest"):
   """Top-k of corr = F1 F2^T / sqrt(C) per pc1 point (sorted, largest first).
 
   Returns (corr_BxNxK, xyz_BxNxKx3). With `chunk` > 0 the N x M matrix is built `chunk` rows at a
-  time, so memory grows with N (not N x M).
+  time, so memory grows with N (not N x M). `precision`: the matmul's (model.precision).
   """
   c = f1_BxNxC.shape[-1]
   k = min(k, f2_BxMxC.shape[1])
 
   def select(f1_chunk):
-    corr = jnp.einsum("bnc,bmc->bnm", f1_chunk, f2_BxMxC) / jnp.sqrt(jnp.float32(c))
+    corr = jnp.einsum("bnc,bmc->bnm", f1_chunk, f2_BxMxC, precision=lax_precision(precision))
+    corr = corr / jnp.sqrt(jnp.float32(c))
     values, idx = jax.lax.top_k(corr, k)
     return values, geometry.gather(xyz2_BxMx3, idx)
 
@@ -37,15 +47,15 @@ def truncated_correlation(f1_BxNxC, f2_BxMxC, xyz2_BxMx3, k: int, chunk: int = 0
 
 
 def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3,
-                scatter: bool | None = None):
+                form: str = "auto"):
   """Mean correlation of the candidates in each of the resolution^3 cells around the estimate.
 
   offset = candidate xyz - estimate. cell = round(offset / scale); a candidate is inside when
   every |cell| <= resolution // 2; cells are numbered (dx * R + dy) * R + dz with d = cell + R // 2.
-  `scatter` (None: on the CPU backend only) adds each candidate into its cell with one scatter
-  instead of comparing it with every cell: the same sums in another order, with B x N x K
-  temporaries instead of B x N x K x R^3.
+  `form` (VOXEL_CELLS) is how candidates are added into their cells.
   """
+  if form not in VOXEL_CELLS:
+    raise ValueError(f"model.voxel_cells must be one of {', '.join(VOXEL_CELLS)}, got {form!r}")
   half = resolution // 2
   cell_BxNxKx3 = jnp.round(jax.lax.stop_gradient(offset_BxNxKx3) / scale)
   inside_BxNxK = jnp.all(jnp.abs(cell_BxNxKx3) <= half, axis=-1)
@@ -54,16 +64,18 @@ def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3,
   # The index is what the gradient keeps of every iteration: int8 where the cells fit.
   index_BxNxK = jnp.where(inside_BxNxK, index_BxNxK, -1).astype(
     jnp.int8 if resolution**3 < 128 else jnp.int32)
+  scatter = {"auto": None, "scatter": True, "compare": False}[form]
+  return cell_means(corr_BxNxK, index_BxNxK, resolution**3, scatter)
+
+
+def _cell_sums(corr_BxNxK, index_BxNxK, cells: int, scatter: bool | None):
+  """Sums and counts B x N x cells of the values in each cell; scatter None: by the platform."""
   if scatter is None:
     # XLA's CPU backend materialises the all-cells comparison (2.7 GB of temporaries for one
     # 8192-point pair with 512 candidates), and runs its scatter in one pass; other backends fuse
     # the comparison, and a GPU scatter adds in a varying order (benchmarks/MODEL.md).
-    scatter = jax.default_backend() == "cpu"
-  return cell_means(corr_BxNxK, index_BxNxK, resolution**3, scatter)
-
-
-def _cell_sums(corr_BxNxK, index_BxNxK, cells: int, scatter: bool):
-  """Sums and counts B x N x cells of the values in each cell."""
+    form = lambda flag: functools.partial(_cell_sums, cells=cells, scatter=flag)
+    return jax.lax.platform_dependent(corr_BxNxK, index_BxNxK, cpu=form(True), default=form(False))
   if scatter:
     b, n, k = corr_BxNxK.shape
     # Row (b, n) owns slots (b * N + n) * (cells + 1) + cell; the last slot takes the outsiders.
@@ -113,6 +125,8 @@ class PointVoxelCorrelation(nn.Module):
   levels: int = 3
   base_scale: float = 0.25
   features: int = 64
+  precision: str = "highest"
+  voxel_cells: str = "auto"
 
   @nn.compact
   def __call__(self, corr_BxNxK, xyz_BxNxKx3, coords_BxNx3):
@@ -124,15 +138,15 @@ class PointVoxelCorrelation(nn.Module):
     near_corr = jnp.take_along_axis(corr_BxNxK, near_BxNxQ, axis=2)
     near_offset = jnp.take_along_axis(offset_BxNxKx3, near_BxNxQ[..., None], axis=2)
     x = jnp.concatenate([near_corr[..., None], near_offset], axis=-1)
-    x = nn.Dense(64, name="knn_conv")(x)
+    x = dense(64, self.precision, name="knn_conv")(x)
     x = nn.PReLU(negative_slope_init=0.25, name="knn_act")(GroupNorm(name="knn_norm")(x))
-    point_BxNxF = nn.Dense(self.features, name="knn_out")(jnp.max(x, axis=2))
+    point_BxNxF = dense(self.features, self.precision, name="knn_out")(jnp.max(x, axis=2))
     # Voxel branch.
     cells = [
-      voxel_means(corr_BxNxK, offset_BxNxKx3, self.base_scale * 2**level)
+      voxel_means(corr_BxNxK, offset_BxNxKx3, self.base_scale * 2**level, form=self.voxel_cells)
       for level in range(self.levels)
     ]
-    v = nn.Dense(128, name="voxel_conv")(jnp.concatenate(cells, axis=-1))
+    v = dense(128, self.precision, name="voxel_conv")(jnp.concatenate(cells, axis=-1))
     v = nn.PReLU(negative_slope_init=0.25, name="voxel_act")(GroupNorm(name="voxel_norm")(v))
-    voxel_BxNxF = nn.Dense(self.features, name="voxel_out")(v)
+    voxel_BxNxF = dense(self.features, self.precision, name="voxel_out")(v)
     return point_BxNxF + voxel_BxNxF

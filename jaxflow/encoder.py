@@ -4,19 +4,20 @@ from typing import Sequence
 
 import flax.linen as nn
 
-from jaxflow.layers import GCL, GroupNorm, SetConv, leaky_relu
+from jaxflow.layers import GCL, GroupNorm, SetConv, dense, leaky_relu
 
 
 class SetConvEncoder(nn.Module):
   """PV-RAFT (FLOT) encoder: SetConv 3 -> 32 -> 64 -> 128 on the cloud's kNN graph."""
 
   widths: Sequence[int] = (32, 64, 128)
+  precision: str = "highest"
 
   @nn.compact
   def __call__(self, xyz_BxNx3, nbr_BxNxK):
     x = xyz_BxNx3
     for i, width in enumerate(self.widths):
-      x = SetConv(width, name=f"feat_conv{i + 1}")(x, xyz_BxNx3, nbr_BxNxK)
+      x = SetConv(width, self.precision, name=f"feat_conv{i + 1}")(x, xyz_BxNx3, nbr_BxNxK)
     return x
 
 
@@ -32,20 +33,22 @@ class GraphEncoder(nn.Module):
   residual: bool = True
   supports: int = 3
   similarity: str = "sum"
+  precision: str = "highest"
 
   @nn.compact
   def __call__(self, xyz_BxNx3, nbr_BxNxK):
     x = xyz_BxNx3
     *setconv_widths, w3, w4 = self.widths
     for i, width in enumerate(setconv_widths):
-      x = SetConv(width, name=f"feat_conv{i + 1}")(x, xyz_BxNx3, nbr_BxNxK)
+      x = SetConv(width, self.precision, name=f"feat_conv{i + 1}")(x, xyz_BxNx3, nbr_BxNxK)
     for i, width in enumerate((w3, w4)):
-      y = GCL(width, self.supports, self.similarity, name=f"gcl{i + 1}")(x, xyz_BxNx3, nbr_BxNxK)
+      gcl = GCL(width, self.supports, self.similarity, self.precision, name=f"gcl{i + 1}")
+      y = gcl(x, xyz_BxNx3, nbr_BxNxK)
       y = GroupNorm(name=f"gcl{i + 1}_norm")(y)
       if self.residual:
         shortcut = x
         if x.shape[-1] != width:
-          shortcut = nn.Dense(width, use_bias=False, name=f"gcl{i + 1}_shortcut")(x)
+          shortcut = dense(width, self.precision, use_bias=False, name=f"gcl{i + 1}_shortcut")(x)
         y = y + shortcut
       x = leaky_relu(y)
     return x

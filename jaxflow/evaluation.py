@@ -24,7 +24,7 @@ import numpy as np
 
 from tqdm import tqdm
 
-from jaxflow import checkpointing, distributed, export, test_time
+from jaxflow import checkpointing, distributed, export, model_fields, test_time
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.metrics import METRICS, ThreeWayAverage, format_three_way, per_pair_metrics
@@ -34,10 +34,9 @@ from jaxflow.model import build_model
 SHIPPED_CHECKPOINT = Path(__file__).absolute().parent / "checkpoints" / "jaxflow_synthetic"
 # The settings evaluate.py and predict use when no --config is given (8192 points, 32 iterations).
 EVAL_CONFIG = f"{Path(__file__).absolute().parent / 'configs' / 'default.py'}:eval"
-# Model fields that change neither the parameters nor the training: evaluation settings
-# (corr_chunk, remat_iterations: memory, not results; infer_truncate_k: the correlation candidates
-# at test time).
-RUNTIME_MODEL_FIELDS = ("corr_chunk", "infer_truncate_k", "remat_iterations")
+# Model fields that change neither the parameters nor the training, taken from the user's config
+# (memory, speed, arithmetic, test-time candidates): jaxflow.model_fields, the one table of them.
+RUNTIME_MODEL_FIELDS = model_fields.RUNTIME_MODEL_FIELDS
 
 
 def requested_model_fields(config_flag) -> list[str]:

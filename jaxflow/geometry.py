@@ -7,11 +7,17 @@ import jax
 import jax.numpy as jnp
 
 
-def squared_distances(a_BxNx3: jax.Array, b_BxMx3: jax.Array) -> jax.Array:
-  """|a_i - b_j|^2 as |a|^2 + |b|^2 - 2 a.b (one matmul; the reference's graph uses this form)."""
+def squared_distances(a_BxNx3: jax.Array, b_BxMx3: jax.Array,
+                      precision: str = "highest") -> jax.Array:
+  """|a_i - b_j|^2 as |a|^2 + |b|^2 - 2 a.b (one matmul; the reference's graph uses this form).
+
+  `precision` (a jax.lax.Precision name) is the matmul's: below "highest" a GPU or TPU rounds a.b
+  to ~1e-3 relative, enough to change which neighbours are nearest.
+  """
   a2_BxNx1 = jnp.sum(a_BxNx3**2, axis=-1, keepdims=True)
   b2_Bx1xM = jnp.sum(b_BxMx3**2, axis=-1)[:, None, :]
-  ab_BxNxM = jnp.einsum("bnc,bmc->bnm", a_BxNx3, b_BxMx3, precision=jax.lax.Precision.HIGHEST)
+  ab_BxNxM = jnp.einsum("bnc,bmc->bnm", a_BxNx3, b_BxMx3,
+                        precision=jax.lax.Precision(precision))
   return a2_BxNx1 + b2_Bx1xM - 2.0 * ab_BxNxM
 
 
@@ -41,11 +47,13 @@ def map_row_chunks(fn, xs, chunk: int):
   return jax.tree_util.tree_map(merge, outs)
 
 
-def knn(query_BxNx3: jax.Array, points_BxMx3: jax.Array, k: int, chunk: int = 0) -> jax.Array:
+def knn(query_BxNx3: jax.Array, points_BxMx3: jax.Array, k: int, chunk: int = 0,
+        precision: str = "highest") -> jax.Array:
   """Indices `B x N x k'` of the k' = min(k, M) points nearest to each query (a query in
   `points` finds itself): a cloud smaller than k uses all its points as neighbours.
 
-  With `chunk` > 0 the distance matrix is built `chunk` query rows at a time (memory ~ chunk x M).
+  With `chunk` > 0 the distance matrix is built `chunk` query rows at a time (memory ~ chunk x M);
+  `precision` is that of its matmul (squared_distances).
   """
   k = min(k, points_BxMx3.shape[1])
   # Centred coordinates keep the |a|^2 + |b|^2 - 2ab form exact enough far from the origin.
@@ -53,7 +61,8 @@ def knn(query_BxNx3: jax.Array, points_BxMx3: jax.Array, k: int, chunk: int = 0)
   points_BxMx3 = jax.lax.stop_gradient(points_BxMx3 - centre_Bx1x3)
 
   def select(q_BxCx3):
-    d_BxCxM = squared_distances(jax.lax.stop_gradient(q_BxCx3 - centre_Bx1x3), points_BxMx3)
+    d_BxCxM = squared_distances(jax.lax.stop_gradient(q_BxCx3 - centre_Bx1x3), points_BxMx3,
+                                precision)
     return jax.lax.top_k(-d_BxCxM, k)[1]
 
   return map_row_chunks(select, (query_BxNx3,), chunk)

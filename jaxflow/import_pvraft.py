@@ -6,8 +6,9 @@ WEIGHTS is a PyTorch state_dict of the official RSF (stage 1) or RSF_refine (sta
 (read with torch, an optional dependency), or an .npz of the same arrays: plain PyTorch names, or
 names prefixed `rsf/` and `refine/` as in the project's reference file. PyTorch 1x1 convolutions
 (`out x in x 1 [x 1]`) become dense kernels (`in x out`). The refinement is imported when its
-weights are present (config `configs/pvraft.py:refine`), else the stage-1 network alone
-(`configs/pvraft.py`); WORKDIR/NOTE.txt records which.
+weights are present: the checkpoint is then a trained stage 2 (config `configs/pvraft.py:stage2`),
+so evaluate.py and jaxflow.predict return the refined flow; else the stage-1 network alone
+(`configs/pvraft.py`), whose last iteration they return. WORKDIR/NOTE.txt records which.
 """
 
 import argparse
@@ -158,8 +159,8 @@ def main(argv=None):
   from jaxflow.model import build_model
 
   imported, has_refine = convert_state_dict(load_weights(args.weights))
-  # The official RSF_refine (with refinement) or RSF (stage 1 alone).
-  config = pvraft.get_config("refine" if has_refine else "")
+  # The official RSF_refine (with refinement: a stage-2 run, which evaluates refined) or RSF.
+  config = pvraft.get_config("stage2" if has_refine else "")
   model = build_model(config.model)
   dummy = jnp.zeros((1, 64, 3), jnp.float32) + jnp.linspace(0, 1, 64)[None, :, None]
   fresh = model.init(jax.random.PRNGKey(0), dummy, dummy, num_iters=1)["params"]

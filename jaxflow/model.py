@@ -15,8 +15,10 @@ import jax.numpy as jnp
 import ml_collections
 
 from jaxflow import geometry
-from jaxflow.correlation import PointVoxelCorrelation, truncated_correlation
+from jaxflow.correlation import VOXEL_CELLS, PointVoxelCorrelation, truncated_correlation
 from jaxflow.encoder import GraphEncoder, SetConvEncoder
+from jaxflow.layers import lax_precision
+from jaxflow.model_fields import PARAMETER_FREE_FIELDS  # noqa: F401 (re-exported)
 from jaxflow.refine import GraphRefinement, SetConvRefinement
 from jaxflow.update import UpdateBlock
 
@@ -27,7 +29,9 @@ BACKBONE = ("feature_encoder", "context_encoder", "correlation", "update")
 class SceneFlowNet(nn.Module):
   """Graph-based scene flow network; with encoder="setconv", cell="gru", refine="setconv" it is
   PV-RAFT. The context features (width C) split into the initial hidden state tanh(first C/2)
-  and the context input relu(last C/2)."""
+  and the context input relu(last C/2). `precision` is that of every matmul, the kNN's included
+  (layers.PRECISIONS); `voxel_cells` the voxel branch's form (correlation.VOXEL_CELLS). What kind
+  each field is (architecture, parameter-free, runtime): jaxflow.model_fields."""
 
   encoder: str = "graph"
   widths: Sequence[int] = ()
@@ -44,8 +48,14 @@ class SceneFlowNet(nn.Module):
   refine_widths: Sequence[int] = ()
   corr_chunk: int = 0
   remat_iterations: bool = False
+  precision: str = "highest"
+  voxel_cells: str = "auto"
 
   def setup(self):
+    lax_precision(self.precision)  # a clear error for a misspelt name, before anything traces
+    if self.voxel_cells not in VOXEL_CELLS:
+      raise ValueError(f"model.voxel_cells must be one of {', '.join(VOXEL_CELLS)}, got "
+                       f"{self.voxel_cells!r}")
     if self.encoder not in DEFAULT_WIDTHS:
       raise ValueError(f"model.encoder must be 'graph' or 'setconv', got {self.encoder!r}")
     widths = tuple(self.widths) or DEFAULT_WIDTHS[self.encoder]
@@ -53,23 +63,24 @@ class SceneFlowNet(nn.Module):
       if len(widths) < 3:
         raise ValueError(f"model.widths of the graph encoder needs >= 3 entries, got {widths}")
       make = lambda name: GraphEncoder(
-        widths, self.residual, self.gcl_supports, self.gcl_similarity, name=name
+        widths, self.residual, self.gcl_supports, self.gcl_similarity, self.precision, name=name
       )
     else:
-      make = lambda name: SetConvEncoder(widths, name=name)
+      make = lambda name: SetConvEncoder(widths, self.precision, name=name)
     self.feature_encoder = make("feature_encoder")
     self.context_encoder = make("context_encoder")
     self.correlation = PointVoxelCorrelation(
-      knn=self.corr_knn, levels=self.corr_levels, base_scale=self.base_scale
+      knn=self.corr_knn, levels=self.corr_levels, base_scale=self.base_scale,
+      precision=self.precision, voxel_cells=self.voxel_cells,
     )
-    self.update = UpdateBlock(cell=self.cell)
+    self.update = UpdateBlock(cell=self.cell, precision=self.precision)
     if self.refine == "graph":
       self.refine_module = GraphRefinement(
         tuple(self.refine_widths) or (256, 128, 64), self.gcl_supports, self.gcl_similarity,
-        name="refine",
+        self.precision, name="refine",
       )
     elif self.refine == "setconv":
-      self.refine_module = SetConvRefinement(name="refine")
+      self.refine_module = SetConvRefinement(precision=self.precision, name="refine")
     elif self.refine != "none":
       raise ValueError(f"model.refine must be 'graph', 'setconv' or 'none', got {self.refine!r}")
 
@@ -86,14 +97,14 @@ class SceneFlowNet(nn.Module):
     if refine and self.refine == "none":
       raise ValueError("refine=True asked of a model configured with refine='none'")
     if graphs is None:
-      nbr1_BxNxK = geometry.knn(pc1_BxNx3, pc1_BxNx3, self.knn, self.corr_chunk)
-      nbr2_BxMxK = geometry.knn(pc2_BxMx3, pc2_BxMx3, self.knn, self.corr_chunk)
+      nbr1_BxNxK = geometry.knn(pc1_BxNx3, pc1_BxNx3, self.knn, self.corr_chunk, self.precision)
+      nbr2_BxMxK = geometry.knn(pc2_BxMx3, pc2_BxMx3, self.knn, self.corr_chunk, self.precision)
     else:
       nbr1_BxNxK, nbr2_BxMxK = graphs
     f1 = self.feature_encoder(pc1_BxNx3, nbr1_BxNxK)
     f2 = self.feature_encoder(pc2_BxMx3, nbr2_BxMxK)
     corr_BxNxK, cand_xyz_BxNxKx3 = truncated_correlation(
-      f1, f2, pc2_BxMx3, self.truncate_k, self.corr_chunk
+      f1, f2, pc2_BxMx3, self.truncate_k, self.corr_chunk, self.precision
     )
     context = self.context_encoder(pc1_BxNx3, nbr1_BxNxK)
     hidden = context.shape[-1] // 2
@@ -102,6 +113,8 @@ class SceneFlowNet(nn.Module):
 
     def step(mdl, carry, _):
       h, coords = carry
+      # RAFT's detach: each iteration's gradient reaches the parameters through its own update
+      # only, not back through the earlier estimates (tests/test_gradients.py pins it).
       coords = jax.lax.stop_gradient(coords)
       corr = mdl.correlation(corr_BxNxK, cand_xyz_BxNxKx3, coords)
       flow = coords - pc1_BxNx3
@@ -124,11 +137,6 @@ class SceneFlowNet(nn.Module):
         coarse = jax.lax.stop_gradient(coarse)
       out["refined"] = self.refine_module(coarse, pc1_BxNx3, nbr1_BxNxK)
     return out
-
-
-# Model fields no parameter depends on: a run may warm-start from one with other values of these.
-PARAMETER_FREE_FIELDS = ("truncate_k", "corr_knn", "corr_chunk", "infer_truncate_k",
-                         "remat_iterations")
 
 
 def build_model(model_config: ml_collections.ConfigDict, inference: bool = False) -> SceneFlowNet:

@@ -2,7 +2,7 @@
 
 import flax.linen as nn
 
-from jaxflow.layers import GCL, GroupNorm, SetConv, leaky_relu
+from jaxflow.layers import GCL, GroupNorm, SetConv, dense, leaky_relu
 
 
 class GraphRefinement(nn.Module):
@@ -12,24 +12,26 @@ class GraphRefinement(nn.Module):
   widths: tuple = (256, 128, 64)
   supports: int = 3
   similarity: str = "sum"
+  precision: str = "highest"
 
   @nn.compact
   def __call__(self, flow_BxNx3, xyz_BxNx3, nbr_BxNxK):
     x = flow_BxNx3
     for i, width in enumerate(self.widths):
-      x = GCL(width, self.supports, self.similarity, name=f"gcl{i + 1}")(x, xyz_BxNx3, nbr_BxNxK)
-      x = leaky_relu(GroupNorm(name=f"gcl{i + 1}_norm")(x))
-    return flow_BxNx3 + nn.Dense(3, name="fc")(x)
+      gcl = GCL(width, self.supports, self.similarity, self.precision, name=f"gcl{i + 1}")
+      x = leaky_relu(GroupNorm(name=f"gcl{i + 1}_norm")(gcl(x, xyz_BxNx3, nbr_BxNxK)))
+    return flow_BxNx3 + dense(3, self.precision, name="fc")(x)
 
 
 class SetConvRefinement(nn.Module):
   """PV-RAFT's refinement: SetConv 3 -> 32 -> 64 -> 128, linear 128 -> 3, residual."""
 
   widths: tuple = (32, 64, 128)
+  precision: str = "highest"
 
   @nn.compact
   def __call__(self, flow_BxNx3, xyz_BxNx3, nbr_BxNxK):
     x = flow_BxNx3
     for i, width in enumerate(self.widths):
-      x = SetConv(width, name=f"ref_conv{i + 1}")(x, xyz_BxNx3, nbr_BxNxK)
-    return flow_BxNx3 + nn.Dense(3, name="fc")(x)
+      x = SetConv(width, self.precision, name=f"ref_conv{i + 1}")(x, xyz_BxNx3, nbr_BxNxK)
+    return flow_BxNx3 + dense(3, self.precision, name="fc")(x)

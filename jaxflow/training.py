@@ -39,6 +39,7 @@ from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.losses import refinement_loss, sequence_loss
 from jaxflow.metrics import METRICS
 from jaxflow.model import PARAMETER_FREE_FIELDS, build_model
+from jaxflow.model_fields import REFINE_FIELDS, RUNTIME_MODEL_FIELDS
 from jaxflow.run_log import Interrupted, MetricsLog, PendingMetrics, StopSignals  # noqa: F401
 from jaxflow.train_state import (  # noqa: F401 (the train state's API, also from here)
   REFINE, TrainState, abstract_train_state, create_train_state, init_params, learning_rate,
@@ -131,21 +132,33 @@ def device_batch(batch: dict, mesh: Mesh) -> dict:
 def _load_init_params(params, config):
   """`params` with subtrees taken from the run `config.train.init_from`: in stage 2 every subtree but
   the refinement (the stage-1 backbone), in stage 1 every subtree (a warm start: a new round with
-  another recipe continues from the previous round's parameters; the optimiser starts afresh)."""
+  another recipe continues from the previous round's parameters; the optimiser starts afresh).
+
+  The refinement's own fields (model_fields.REFINE_FIELDS) may differ from the loaded run's: stage 2
+  starts from any stage-1 run of the same backbone, with or without a refinement (PV-RAFT's stage 1
+  has refine='none'), and initialises the refinement afresh; so does a stage-1 warm start whose
+  refinement differs (stage 1 does not train it)."""
   stage = config.train.stage
   if not config.train.init_from:
     if stage == 2:
       raise ConfigError("stage 2 needs config.train.init_from (the stage-1 workdir or step folder)")
     return params
   loaded_state, loaded_config, step = restore_checkpoint(config.train.init_from)
-  diffs = checkpointing.model_differences(loaded_config, config, ignore=PARAMETER_FREE_FIELDS)
+  diffs = checkpointing.model_differences(loaded_config, config,
+                                          ignore=PARAMETER_FREE_FIELDS + REFINE_FIELDS)
   if diffs:
     raise CheckpointError(
       f"{config.train.init_from}: its model differs from this config's ({'; '.join(diffs)})"
     )
-  loaded = {k: v for k, v in loaded_state.params.items() if stage == 1 or k != REFINE}
+  refine_changed = checkpointing.model_differences(loaded_config, config, fields=REFINE_FIELDS)
+  keep_refine = stage == 1 and not refine_changed
+  loaded = {k: v for k, v in loaded_state.params.items() if keep_refine or k != REFINE}
   what = "backbone" if stage == 2 else "parameters"
   print(f"stage {stage}: {what} loaded from {config.train.init_from} (step {step})", file=sys.stderr)
+  if REFINE in params and REFINE not in loaded:
+    print(f"  refinement '{config.model.refine}' freshly initialised"
+          + (f" (init_from: {'; '.join(refine_changed)} != config)" if refine_changed else ""),
+          file=sys.stderr)
   changed = checkpointing.model_differences(loaded_config, config, fields=PARAMETER_FREE_FIELDS)
   if changed:  # e.g. more candidates for larger windows: the same parameters, run differently
     print(f"  parameter-free fields changed (init_from != config): {'; '.join(changed)}",
@@ -158,7 +171,10 @@ def _check_config(config, n_devices: int):
   if t.stage not in (1, 2):
     raise ConfigError(f"config.train.stage must be 1 or 2, got {t.stage}")
   if t.stage == 2 and config.model.refine == "none":
-    raise ConfigError("stage 2 trains the refinement, but config.model.refine is 'none'")
+    raise ConfigError(
+      "stage 2 trains the refinement, but config.model.refine is 'none': give the refinement to "
+      "add to the stage-1 run (--config.model.refine=setconv for PV-RAFT's, =graph for the "
+      "paper's; configs/pvraft.py:stage2 and configs/paper.py:stage2 set it)")
   if t.batch_size % n_devices:
     raise ConfigError(
       f"config.train.batch_size={t.batch_size} must be a multiple of the {n_devices} devices"
@@ -226,7 +242,7 @@ def start_state(run: Run) -> tuple[TrainState, int]:
     host = jax.device_get(create_train_state(params, run.tx))
     return jax.device_put(host, replicated), 0
   saved = ckpts.restore_config(start)
-  diffs = checkpointing.model_differences(saved, config, ignore=evaluation.RUNTIME_MODEL_FIELDS)
+  diffs = checkpointing.model_differences(saved, config, ignore=RUNTIME_MODEL_FIELDS)
   if saved.train.stage != config.train.stage:
     diffs.append(f"train.stage: {saved.train.stage} != {config.train.stage}")
   if diffs:

@@ -1,15 +1,13 @@
 """The whole network: parameter counts, shapes, the scan, symmetries, gradients, and fidelity to
 the official PV-RAFT outputs in ../shared/reference."""
 
-import itertools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxflow.configs import ablation, default, pvraft
-from jaxflow import geometry, losses
+from jaxflow import geometry, losses, predict
 from jaxflow.import_pvraft import convert_state_dict, import_into
 from jaxflow.model import build_model
 from jaxflow.summary import parameter_counts
@@ -179,42 +177,9 @@ def test_far_cloud_gives_the_same_flow_as_near():
 
 
 # --- Fidelity to the official PV-RAFT network --------------------------------------------------
-
-def reference_graph_candidates(points, k):
-  """kNN graphs as the official code computes them, with every way to break its float32 ties.
-
-  The reference orders neighbours by |p|^2 + |q|^2 - 2 p.q in float32, the dot product a fused
-  multiply-add chain over x, y, z (emulated exactly here in float64), then torch.argsort. Where
-  the k-th and (k+1)-th distances are equal in float32 the reference's choice is unspecified
-  (PyTorch's CPU sort is not stable), so each such row yields two candidate graphs.
-  """
-  p = points.astype(np.float32)
-  x, y, z = p[:, 0], p[:, 1], p[:, 2]
-  sq = ((x * x + y * y) + z * z)[:, None]
-  f64 = lambda a: a.astype(np.float64)
-  xy = (f64(y[:, None]) * y[None] + np.outer(x, x).astype(np.float32)).astype(np.float32)
-  dot = (f64(z[:, None]) * z[None] + xy).astype(np.float32)
-  d = (sq + sq.T) - np.float32(2) * dot
-  order = np.argsort(d, axis=-1, kind="stable")
-  base = order[:, :k].copy()
-  ties = [i for i in range(len(p)) if d[i, order[i, k - 1]] == d[i, order[i, k]]]
-  options = []
-  for flips in itertools.product([False, True], repeat=len(ties)):
-    g = base.copy()
-    for row, flip in zip(ties, flips):
-      if flip:
-        g[row, k - 1] = order[row, k]
-    options.append(g)
-  return options, ties
-
-
-@pytest.fixture(scope="module")
-def pvraft_reference(shared_dir_module):
-  path = shared_dir_module / "reference" / "pvraft_seed0_n1024_it8.npz"
-  if not path.is_file():
-    pytest.skip(f"{path} not present")
-  with np.load(path) as data:
-    return {k: data[k] for k in data.files}
+# ../shared/reference/pvraft_seed5_n2048_it12.npz carries the official network's own kNN graphs
+# (nbr1, nbr2): given them, the network is compared with no emulation of the official float32
+# neighbour ranking (whose rounding picks another 32nd neighbour than an exact kNN on a few rows).
 
 
 @pytest.fixture(scope="module")
@@ -225,39 +190,53 @@ def shared_dir_module():
   return SHARED
 
 
-def test_pvraft_reproduces_official_outputs(pvraft_reference):
-  ref = pvraft_reference
+@pytest.fixture(scope="module")
+def pvraft_reference(shared_dir_module):
+  path = shared_dir_module / "reference" / "pvraft_seed5_n2048_it12.npz"
+  if not path.is_file():
+    pytest.skip(f"{path} not present")
+  with np.load(path) as data:
+    return {k: data[k] for k in data.files}
+
+
+def imported_pvraft(ref):
   imported, has_refine = convert_state_dict({k: v for k, v in ref.items() if "/" in k})
   assert has_refine
   model = build_model(pvraft.get_config("refine").model)
   pc1, pc2 = jnp.asarray(ref["pc1"]), jnp.asarray(ref["pc2"])
-  fresh = model.init(jax.random.PRNGKey(0), pc1, pc2, num_iters=1)["params"]
-  params = import_into(jax.tree_util.tree_map(np.asarray, fresh), imported)
+  fresh = model.init(jax.random.PRNGKey(0), pc1[:, :64], pc2[:, :64], num_iters=1)["params"]
+  return model, import_into(jax.tree_util.tree_map(np.asarray, fresh), imported)
 
-  # fmap1 depends on pc1's graph only (no float32 ties at its boundary in this file).
-  nbr1_options, ties1 = reference_graph_candidates(ref["pc1"][0], 32)
-  nbr2_options, ties2 = reference_graph_candidates(ref["pc2"][0], 32)
-  assert len(ties1) + len(ties2) <= 6, "too many float32 ties to enumerate"
 
-  run = jax.jit(lambda g1, g2: model.apply({"params": params}, pc1, pc2, num_iters=8,
-                                           graphs=(g1[None], g2[None])))
-  best = None
-  for g1, g2 in itertools.product(nbr1_options, nbr2_options):
-    out = run(jnp.asarray(g1), jnp.asarray(g2))
-    err = np.linalg.norm(np.asarray(out["flows"][0]) - ref["flows"][0], axis=-1)  # Z x N
-    if best is None or np.median(err[-1]) < np.median(best[1][-1]):
-      best = (g1, err, out)
-  g1, err, out = best
-
-  fmap1 = model.apply({"params": params}, pc1, jnp.asarray(g1)[None],
+def test_pvraft_reproduces_official_outputs_given_its_graphs(pvraft_reference):
+  ref = pvraft_reference
+  model, params = imported_pvraft(ref)
+  pc1, pc2 = jnp.asarray(ref["pc1"]), jnp.asarray(ref["pc2"])
+  graphs = (jnp.asarray(ref["nbr1"]), jnp.asarray(ref["nbr2"]))
+  num_iters = ref["flows"].shape[1]
+  out = jax.jit(lambda p: model.apply({"params": p}, pc1, pc2, num_iters=num_iters,
+                                      graphs=graphs))(params)
+  fmap1 = model.apply({"params": params}, pc1, graphs[0],
                       method=lambda mdl, p, g: mdl.feature_encoder(p, g))
   want = ref["fmap1"].transpose(0, 2, 1)
   assert np.abs(np.asarray(fmap1) - want).max() <= 1e-5 * np.abs(want).max()
-  for z in range(8):  # the README's tolerances, at every iteration
+  err = np.linalg.norm(np.asarray(out["flows"][0]) - ref["flows"][0], axis=-1)  # Z x N
+  for z in range(num_iters):  # the README's tolerances, at every iteration
     assert np.median(err[z]) < 5e-6, (z, np.median(err[z]))
     assert np.mean(err[z] < 1e-3) >= 0.995, (z, np.mean(err[z] < 1e-3))
   refined_err = np.linalg.norm(np.asarray(out["refined"][0]) - ref["refined"][0], axis=-1)
   assert np.median(refined_err) < 1e-5 and np.mean(refined_err < 1e-3) >= 0.995
+
+
+def test_exact_knn_differs_from_the_official_graphs_on_a_few_rows_only(pvraft_reference):
+  """Our exact kNN and the official float32 one choose the same 32 neighbours (as sets) on all but
+  a handful of the 2048 rows (README: 1-3, where float32 rounding exceeds the 32nd/33rd gap)."""
+  for cloud, nbr in (("pc1", "nbr1"), ("pc2", "nbr2")):
+    points = jnp.asarray(pvraft_reference[cloud])
+    ours = np.sort(np.asarray(geometry.knn(points, points, 32))[0], axis=-1)
+    theirs = np.sort(pvraft_reference[nbr][0], axis=-1)
+    differing = int(np.sum(np.any(ours != theirs, axis=-1)))
+    assert differing <= 5, (cloud, differing)
 
 
 def test_import_rejects_foreign_weights():
@@ -275,12 +254,41 @@ def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_referen
   source = tmp_path / "weights.npz"
   np.savez(source, **{k: v for k, v in pvraft_reference.items() if "/" in k})
   out = tmp_path / "imported"
-  done = subprocess.run([sys.executable, "-m", "jaxflow.import_pvraft", str(source), "--out", str(out)],
-                        cwd=ROOT, capture_output=True, text=True)
+  done = subprocess.run(
+    [sys.executable, "-m", "jaxflow.import_pvraft", str(source), "--out", str(out)],
+    cwd=ROOT, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
   state, config, step = training.restore_checkpoint(out)
-  assert config.model.refine == "setconv" and step == 0
+  # With refinement weights: a trained stage 2, which evaluate.py and predict run refined.
+  assert config.model.refine == "setconv" and config.train.stage == 2 and step == 0
   kernel = pvraft_reference["rsf/update_block.gru.convz.weight"][:, :, 0].T
   np.testing.assert_array_equal(state.params["update"]["gru"]["convz"]["kernel"], kernel)
   fc = pvraft_reference["refine/fc.weight"].T
   np.testing.assert_array_equal(state.params["refine"]["fc"]["kernel"], fc)
+
+  # jaxflow.predict on it returns the refined flow: the official refined flow up to the few-row kNN
+  # difference (our exact kNN, not the official graphs), far from the official coarse flow (the
+  # refinement of these random weights moves points by a median 0.57 m).
+  ref = pvraft_reference
+  predictor = predict.load_predictor(out)
+  assert predictor.refine
+  flow = predict.predict_flow(ref["pc1"][0], ref["pc2"][0], num_iters=ref["flows"].shape[1],
+                              predictor=predictor)
+  to_refined = np.linalg.norm(flow - ref["refined"][0], axis=-1)
+  to_coarse = np.linalg.norm(flow - ref["flows"][0, -1], axis=-1)
+  assert np.median(to_refined) < 1e-2 and np.median(to_coarse) > 0.2, (
+    np.median(to_refined), np.median(to_coarse))
+
+
+def test_import_without_refinement_predicts_the_coarse_flow(pvraft_reference, tmp_path):
+  from jaxflow import import_pvraft
+  source = tmp_path / "rsf.npz"
+  np.savez(source, **{k: v for k, v in pvraft_reference.items() if k.startswith("rsf/")})
+  import_pvraft.main([str(source), "--out", str(tmp_path / "imported")])
+  predictor = predict.load_predictor(tmp_path / "imported")
+  assert not predictor.refine and predictor.config.train.stage == 1
+  assert predictor.config.model.refine == "none"
+  pc1, pc2 = pvraft_reference["pc1"][:, :256], pvraft_reference["pc2"][:, :256]
+  flow = predictor(pc1[0], pc2[0], num_iters=2)
+  want = predictor.model.apply({"params": predictor.params}, pc1, pc2, num_iters=2)["flows"]
+  np.testing.assert_allclose(flow, np.asarray(want[0, -1]), rtol=1e-5, atol=1e-5)

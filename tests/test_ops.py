@@ -122,14 +122,14 @@ def correlation_inputs(seed, n=30, k=40):
 
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("scale", [0.25, 0.5, 1.0])
-@pytest.mark.parametrize("scatter", [False, True])  # other backends / the CPU's
-def test_voxel_cells_match_loop(seed, scale, scatter):
+@pytest.mark.parametrize("form", ["compare", "scatter", "auto"])  # GPU/TPU's, CPU's, by device
+def test_voxel_cells_match_loop(seed, scale, form):
   # A batch of two pairs: the scatter form numbers the cells of every (pair, point) row apart.
   inputs = [correlation_inputs(seed), correlation_inputs(seed + 100)]
   corr = jnp.asarray(np.stack([c for c, _, _ in inputs]))
   offset = jnp.asarray(np.stack([cand - coords[:, None] for _, cand, coords in inputs]))
-  got = voxel_means(corr, offset, scale, scatter=scatter)
-  grad = jax.grad(lambda c: jnp.sum(voxel_means(c, offset, scale, scatter=scatter) ** 2))(corr)
+  got = voxel_means(corr, offset, scale, form=form)
+  grad = jax.grad(lambda c: jnp.sum(voxel_means(c, offset, scale, form=form) ** 2))(corr)
   for b, (corr_b, cand, coords) in enumerate(inputs):
     want = ref.voxel_cells(corr_b, cand, coords, scale)
     close(got[b], want)
@@ -154,6 +154,26 @@ def test_voxel_cells_validity_cube_and_empty():
   # No candidate inside: every cell is 0.
   far = jnp.full((1, 1, 4, 3), 10.0)
   assert np.all(np.asarray(voxel_means(jnp.ones((1, 1, 4)), far, 0.25)) == 0)
+
+
+def test_voxel_cells_form_follows_the_device_it_is_compiled_for():
+  """"auto" is decided when XLA lowers the program for a platform, not by the process's default
+  backend when it is traced: the same trace lowered for the CPU scatters, for a GPU or TPU it
+  compares; the explicit forms are what they say everywhere."""
+  corr, cand, coords = correlation_inputs(0)
+  offset = jnp.asarray(cand - coords[:, None])[None]
+  corr = jnp.asarray(corr)[None]
+
+  def lowered(form, platform):
+    fn = jax.jit(lambda c, o: voxel_means(c, o, 0.5, form=form))
+    return fn.trace(corr, offset).lower(lowering_platforms=(platform,)).as_text()
+
+  for platform in ("cpu", "cuda", "tpu"):
+    assert ("scatter" in lowered("auto", platform)) == (platform == "cpu"), platform
+    assert "scatter" in lowered("scatter", platform)
+    assert "scatter" not in lowered("compare", platform)
+  with pytest.raises(ValueError, match="voxel_cells must be one of auto, scatter, compare"):
+    voxel_means(corr, offset, 0.5, form="gather")
 
 
 @pytest.mark.parametrize("seed", SEEDS)

@@ -1,5 +1,5 @@
-r"""Evaluation on Argoverse scene flow (NSFP's preprocessing, 212 test pairs): every point of pc1 that
-has flow (no sampling: num_points 0), 32 iterations, one pair at a time.
+r"""Evaluation on Argoverse scene flow (NSFP's preprocessing, 212 test pairs): every point of pc1
+that has flow (no sampling: num_points 0), 32 iterations, one pair at a time.
 
     python evaluate.py --config configs/argoverse_eval.py --checkpoint runs/ft3d_stage2 \
         --dataset argoverse:data/argoverse
@@ -9,12 +9,11 @@ timed). model.corr_chunk builds the correlation in row blocks so memory grows wi
 changes no parameter, so it is taken from this config rather than from the checkpoint.
 """
 
-from jaxflow.configs import default
+from jaxflow.configs import paper
 
 
 def get_config(arg: str = ""):
-  config = default.get_config("eval")
-  config.model = default.model_config()
+  config = paper.get_config()
   config.model.corr_chunk = 2048
   config.eval.dataset = f"argoverse:{arg or 'data/argoverse'}"
   config.eval.split = "test"

@@ -1,0 +1,138 @@
+"""model.precision reaches every matmul of the network, its gradient and its kNN; the table of model
+fields (jaxflow.model_fields) covers the model and gives old checkpoints the defaults."""
+
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxflow import checkpointing, losses, model_fields
+from jaxflow.configs import default
+from jaxflow.model import SceneFlowNet, build_model
+
+DOT = re.compile(r"stablehlo\.(dot_general|dot|convolution)\b")
+PRECISION = re.compile(r"precision = \[(\w+), (\w+)\]")
+
+
+def tiny_model_config(**overrides):
+  m = default.model_config()
+  m.widths, m.knn, m.truncate_k, m.corr_knn = (16, 16, 16, 32), 8, 16, 8
+  m.refine_widths = (32, 16, 16)
+  for k, v in overrides.items():
+    m[k] = v
+  return m
+
+
+def dot_precisions(text: str) -> list[str]:
+  """The precision of every dot / dot_general / convolution of a lowered program's text; "none"
+  for one that states none (the backend's default)."""
+  found = []
+  for line in text.splitlines():
+    if DOT.search(line) and "=" in line:
+      m = PRECISION.search(line)
+      found.append(f"{m.group(1)},{m.group(2)}" if m else "none")
+  return found
+
+
+def pair(n=40, seed=0):
+  rng = np.random.default_rng(seed)
+  pc1 = rng.uniform(-3, 3, (2, n, 3)).astype(np.float32)
+  return jnp.asarray(pc1), jnp.asarray(pc1 + rng.normal(0, 0.1, pc1.shape).astype(np.float32))
+
+
+@pytest.mark.parametrize("precision,want", [("highest", "HIGHEST"), ("default", "DEFAULT")])
+@pytest.mark.parametrize("variant", ["paper", "pvraft"])
+def test_every_dot_of_the_training_gradient_carries_the_precision(precision, want, variant):
+  """Lowered, not run: the gradient of both losses (sequence loss over 3 iterations + refinement
+  loss), i.e. the forward (kNN, encoders, correlation, update, refinement) and every matmul of its
+  backward, custom gradients included, states the configured precision on every dot, so a GPU
+  computes what the CPU tests check."""
+  overrides = dict(precision=precision)
+  if variant == "pvraft":  # SetConv encoder, GRU and SetConv refinement
+    overrides.update(encoder="setconv", widths=(16, 16, 32), residual=False, cell="gru",
+                     refine="setconv")
+  model = build_model(tiny_model_config(**overrides))
+  pc1, pc2 = pair()
+  params = jax.eval_shape(lambda: model.init(jax.random.key(0), pc1, pc2, num_iters=1))["params"]
+
+  def loss(p):
+    out = model.apply({"params": p}, pc1, pc2, num_iters=3)
+    return losses.total_loss(out["flows"], out["refined"], pc2 - pc1)
+
+  found = dot_precisions(jax.jit(jax.value_and_grad(loss)).lower(params).as_text())
+  assert len(found) >= 40, len(found)  # the program holds the network's forward and backward
+  wrong = sorted({p for p in found if p != f"{want},{want}"})
+  assert not wrong, f"{len(found)} dots, some at {wrong} instead of {want}"
+
+
+def test_precision_reaches_the_knn_and_the_correlation():
+  """The kNN distance matmul and the all-pairs correlation alone (no network dots) follow it."""
+  from jaxflow import geometry
+  from jaxflow.correlation import truncated_correlation
+  pc1, pc2 = pair()
+  for precision, want in (("highest", "HIGHEST"), ("tensorfloat32", "HIGH"),
+                          ("bfloat16", "DEFAULT")):
+    knn = jax.jit(lambda a: geometry.knn(a, a, 8, precision=precision)).lower(pc1).as_text()
+    corr = jax.jit(lambda a, b: truncated_correlation(a, b, b, 8, precision=precision))
+    for text in (knn, corr.lower(pc1, pc2).as_text()):
+      assert dot_precisions(text) == [f"{want},{want}"]
+
+
+def test_precision_default_is_exact_float32_and_a_bad_name_is_refused():
+  assert SceneFlowNet().precision == "highest" == default.get_config().model.precision
+  model = build_model(tiny_model_config(precision="fp16"))
+  pc1, pc2 = pair()
+  with pytest.raises(ValueError, match="model.precision must be one of highest, float32, high"):
+    model.init(jax.random.key(0), pc1, pc2, num_iters=1)
+
+
+def test_the_field_table_covers_the_model_and_the_configs():
+  fields = set(SceneFlowNet.__dataclass_fields__) - {"parent", "name"}
+  assert set(model_fields.MODEL_FIELDS) == fields | {"infer_truncate_k"}  # build_model pops it
+  assert set(default.get_config().model) == set(model_fields.MODEL_FIELDS)
+  kinds = {f.kind for f in model_fields.MODEL_FIELDS.values()}
+  assert kinds == {"architecture", "parameter_free", "runtime"}
+  assert set(model_fields.RUNTIME_MODEL_FIELDS) < set(model_fields.PARAMETER_FREE_FIELDS)
+  # Every added field's value for old checkpoints is the model's own default.
+  for name, value in model_fields.ADDED_MODEL_FIELDS.items():
+    if name != "infer_truncate_k":
+      assert getattr(SceneFlowNet(), name) == value, name
+  assert set(model_fields.REFINE_FIELDS) <= {
+    k for k, f in model_fields.MODEL_FIELDS.items() if f.kind == "architecture"}
+
+
+def test_a_checkpoint_config_without_the_new_fields_reads_as_their_defaults():
+  """A config stored before precision / voxel_cells existed: same model, built with defaults."""
+  new = default.get_config()
+  old = default.get_config()
+  with old.unlocked():
+    for name in ("precision", "voxel_cells", "remat_iterations", "infer_truncate_k"):
+      del old.model[name]
+  assert checkpointing.model_differences(old, new) == []
+  model = build_model(old.model)
+  assert (model.precision, model.voxel_cells) == ("highest", "auto")
+  new.model.precision = "default"
+  assert checkpointing.model_differences(old, new) == ["precision: 'highest' != 'default'"]
+  assert "precision" in model_fields.RUNTIME_MODEL_FIELDS  # evaluation takes it from the user
+
+
+def test_voxel_cells_setting_reaches_the_model_and_is_decided_per_platform():
+  """model.voxel_cells picks the voxel branch's form in the whole model (its forward holds no other
+  scatter); "auto" is the CPU's scatter when lowered for the CPU and the comparison when lowered
+  for a GPU, from the same trace (tests/test_ops.py holds the forms to the same values)."""
+  pc1, pc2 = pair()
+  scatters = {}
+  for form in ("scatter", "compare", "auto"):
+    model = build_model(tiny_model_config(voxel_cells=form))
+    params = jax.eval_shape(lambda: model.init(jax.random.key(0), pc1, pc2, num_iters=1))
+    traced = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=2)).trace(params, pc1, pc2)
+    for platform in ("cpu", "cuda"):
+      text = traced.lower(lowering_platforms=(platform,)).as_text()
+      scatters[form, platform] = "stablehlo.scatter" in text
+  assert scatters == {("scatter", "cpu"): True, ("scatter", "cuda"): True,
+                      ("compare", "cpu"): False, ("compare", "cuda"): False,
+                      ("auto", "cpu"): True, ("auto", "cuda"): False}
+  with pytest.raises(ValueError, match="model.voxel_cells must be one of auto, scatter, compare"):
+    build_model(tiny_model_config(voxel_cells="loop")).init(jax.random.key(0), pc1, pc2)
