@@ -149,8 +149,9 @@ def comment_of(field: str, comments: list[dict]) -> str:
 
 def describe(config, path=None, flag: str = "config") -> str:
   """The config as `flag.field = value  # comment` lines (comments from `path`, then the package's
-  configs/default.py, where every field is defined)."""
-  sources = [p for p in (path, PACKAGE_CONFIGS / "default.py") if p and pathlib.Path(p).exists()]
+  configs/default.py and configs/paper.py, the base where every field is defined)."""
+  sources = [p for p in (path, PACKAGE_CONFIGS / "default.py", PACKAGE_CONFIGS / "paper.py")
+             if p and pathlib.Path(p).exists()]
   comments = [_comments(p) for p in sources]
   lines = []
   for field in field_paths(config):

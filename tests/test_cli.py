@@ -126,7 +126,7 @@ def test_print_config_lists_every_field_with_its_comment():
   for field, value in expected.items():
     (line,) = [l for l in lines if l.startswith(f"config.{field} = ")]
     assert line.split("  # ")[0] == f"config.{field} = {value!r}"
-  assert "config.train.lr = 0.5  # Adam." in lines
+  assert "config.train.lr = 0.5  # Adam (paper 4.1)." in lines
   # A model field's comment comes from model_config() (`m.knn = 32  # ...`).
   assert "config.model.knn = 8  # neighbours of each point in its own cloud" in proc.stdout
 
