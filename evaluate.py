@@ -7,7 +7,8 @@ r"""Evaluates a checkpoint on a dataset and prints the paper's table (EPE, AccS,
 The model comes from the checkpoint (workdir, checkpoints folder or step folder; default: the shipped
 jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192 points,
 32 iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; --dataset and
---split default to config.eval.dataset and config.eval.split.
+--split default to config.eval.dataset and config.eval.split. --method nsfp|optimise evaluates the
+per-pair optimisation methods instead of the network alone (docs/methods.md).
 """
 
 from absl import flags
@@ -25,6 +26,10 @@ _DATASET = flags.DEFINE_string(
 _SPLIT = flags.DEFINE_string("split", None, "Dataset split (default: config.eval.split).")
 _JSON = flags.DEFINE_string("json", None, "Write the results here as JSON.")
 _RENDER = flags.DEFINE_string("render", None, "Render every pair into this folder (jaxflow.viz).")
+_METHOD = flags.DEFINE_enum("method", "network", ["network", "nsfp", "optimise"],
+                            "network: the paper's protocol; nsfp: the NSFP baseline (no checkpoint); "
+                            "optimise: the network's flow refined per pair (docs/methods.md).")
+_STEPS = flags.DEFINE_integer("steps", None, "Cap the optimisation steps of nsfp / optimise.")
 
 
 def main(argv):
@@ -32,7 +37,8 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   model_fields = evaluation.requested_model_fields(flags.FLAGS["config"])
   evaluation.evaluate_checkpoint(_CHECKPOINT.value, _CONFIG.value, _DATASET.value, _SPLIT.value,
-                                 model_fields, _JSON.value, _RENDER.value)
+                                 model_fields, _JSON.value, _RENDER.value, _METHOD.value,
+                                 _STEPS.value)
 
 
 if __name__ == "__main__":
