@@ -37,6 +37,7 @@ class Optimise:
   clusters: rigid.Settings = rigid.Settings()
   rigid_steps: int = 300
   rigid_learning_rate: float = 0.01
+  choose: bool = True  # per cluster, keep the rigid flow only where it fits pc2 better
   polish: int = 0
 
 
@@ -67,7 +68,11 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise):
     motions = rigid.fit(pc1_BxNx3, flow, labels, chosen.clusters.min_points)
     stage = dataclasses.replace(chosen.refine, model="rigid", steps=chosen.rigid_steps,
                                 learning_rate=chosen.rigid_learning_rate, smoothness=0.0)
-    flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions))[0]
+    fitted = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions))[0]
+    if chosen.choose:
+      fitted = rigid.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3, chosen.refine.truncate,
+                            chosen.refine.chunk)
+    flow = fitted
   if chosen.polish:
     flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3,
                               dataclasses.replace(chosen.refine, steps=chosen.polish))[0]

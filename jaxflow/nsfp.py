@@ -51,7 +51,8 @@ def nsfp_flow(pc1_Nx3, pc2_Mx3, chosen: optimiser.Settings | None = None):
 def main(argv):
   import argparse  # pylint: disable=import-outside-toplevel
 
-  parser = argparse.ArgumentParser(prog="python -m jaxflow.nsfp", description=__doc__.split("\n")[0])
+  parser = argparse.ArgumentParser(prog="python -m jaxflow.nsfp",
+                                   description=__doc__.split("\n")[0])
   parser.add_argument("pc1")
   parser.add_argument("pc2")
   parser.add_argument("--out", required=True, help="the flow, .npy float32, a row per PC1 point")
@@ -74,12 +75,7 @@ def main(argv):
   runner = dataclasses.replace(runner, method_settings=chosen)
   flow = runner(pc1, pc2, max_points=args.max_points, seed=args.seed,
                 names=(args.pc1, args.pc2)).astype(np.float32)
-  try:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as f:
-      np.save(f, flow)
-  except OSError as e:
-    raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
+  predict.save_flow(out, flow)
   for note in [note1, note2] + runner.notes:
     if note:
       print(f"note: {note}", file=sys.stderr)

@@ -1,12 +1,12 @@
-"""The self-supervised objectives of per-pair flow optimisation (jaxflow.optimiser, NSFP, test time).
+"""The self-supervised objectives of flow optimisation (jaxflow.optimiser: NSFP, test time).
 
 One Chamfer term, one smoothness term, one distance transform:
 - `nearest` / `chamfer_terms`: the exact nearest-point squared distances (a kNN search, O(N x M)).
 - `smoothness`: mean L1 difference of the flow over pc1's k-nearest graph.
 - `distance_grid` / `grid_distance`: the distance to pc2 sampled once per pair on a voxel grid and
   read by trilinear interpolation at any point (the FNSF idea: a step costs O(N), not O(N x M)).
-  The grid covers pc2's box plus `margin` metres (beyond it every point is farther than `margin` from
-  pc2, so a term truncated at <= margin is constant there) and holds at most `max_cells` nodes:
+  The grid covers pc2's box plus `margin` metres (beyond it every point is farther than `margin`
+  from pc2, so a term truncated at <= margin is constant there) and holds at most `max_cells` nodes:
   cells grow for large extents, so memory stays bounded for whole sweeps.
 """
 
@@ -21,7 +21,7 @@ from jaxflow import geometry
 
 
 def nearest(query_BxNx3, points_BxMx3, chunk: int = 0):
-  """Index B x N x 1 of the nearest point of `points` for each query (a constant of the gradient)."""
+  """Index B x N x 1 of the nearest point of `points` to each query (a constant of the gradient)."""
   return geometry.knn(query_BxNx3, points_BxMx3, 1, chunk=chunk)
 
 
@@ -109,7 +109,8 @@ def distance_grid(pc2_BxMx3, cell: float, max_cells: int, margin: float) -> Grid
   """The distance grid of each cloud of the batch, built on the host (scipy) inside jit."""
   b = pc2_BxMx3.shape[0]
   shapes = (jax.ShapeDtypeStruct((b, 3), jnp.float32), jax.ShapeDtypeStruct((b,), jnp.float32),
-            jax.ShapeDtypeStruct((b, 3), jnp.int32), jax.ShapeDtypeStruct((b, max_cells), jnp.float32))
+            jax.ShapeDtypeStruct((b, 3), jnp.int32),
+            jax.ShapeDtypeStruct((b, max_cells), jnp.float32))
 
   def build(pc2):
     out = [np.zeros(s.shape, s.dtype) for s in shapes]

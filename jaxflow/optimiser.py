@@ -1,4 +1,4 @@
-"""Per-pair flow optimisation with no ground truth: NSFP, the fast optimiser and test-time refinement.
+"""Per-pair flow optimisation with no ground truth: NSFP, the fast optimiser, test-time refinement.
 
     flow_BxNx3, info = optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, Settings(...))
 
@@ -93,7 +93,8 @@ def _init_params(settings: Settings, n: int):
   if settings.model == "flow":
     return {"flow": jnp.zeros((n, 3), jnp.float32)}
   if settings.model == "rigid":  # a rotation vector and a translation a cluster slot
-    return {"rotation": jnp.zeros((n, 3), jnp.float32), "translation": jnp.zeros((n, 3), jnp.float32)}
+    zeros = jnp.zeros((n, 3), jnp.float32)
+    return {"rotation": zeros, "translation": zeros}
   forward, backward = jax.random.split(jax.random.key(settings.seed))
   params = {"mlp": init_mlp(forward, settings.width, settings.depth)}
   if settings.cycle:
@@ -219,9 +220,11 @@ def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=()):
   return jax.vmap(fn)(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters, grids)
 
 
-# NSFP's published settings (github.com/Lilac-Lee/Neural_Scene_Flow_Prior): MLP 8 x 128, ReLU, linear
-# output; forward and backward MLPs; Adam lr 0.008 with weight decay 1e-4 (L2 added to the gradient);
-# the two-way Chamfer with squared distances over 2 m^2 truncated (clipped here: the same gradients);
-# nearest points searched every step; up to 5000 steps, early stopping patience 100, min delta 1e-4.
-NSFP = Settings(model="mlp", objective="exact", steps=5000, learning_rate=0.008, weight_decay=1e-4,
-                smoothness=0.0, truncate=2**0.5, cycle=True, patience=100, min_delta=1e-4, refresh=1)
+# NSFP's published settings (github.com/Lilac-Lee/Neural_Scene_Flow_Prior): MLP 8 x 128, ReLU,
+# linear output; forward and backward MLPs; Adam lr 0.008 with weight decay 1e-4 (L2 added to the
+# gradient); the two-way Chamfer with squared distances over 2 m^2 truncated (clipped here: the same
+# gradients); nearest points searched every step; up to 5000 steps, early stopping patience 100,
+# min delta 1e-4.
+NSFP = Settings(model="mlp", objective="exact", steps=5000, learning_rate=0.008,
+                weight_decay=1e-4, smoothness=0.0, truncate=2**0.5, cycle=True, patience=100,
+                min_delta=1e-4, refresh=1)

@@ -222,6 +222,16 @@ def write_ply(path, points_Nx3) -> pathlib.Path:
   return path
 
 
+def save_flow(out: pathlib.Path, flow_Nx3):
+  """Writes the flow as .npy; a folder or an unwritable path is a ConfigError naming --out."""
+  try:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as f:
+      np.save(f, flow_Nx3)
+  except OSError as e:
+    raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
+
+
 def read_cloud(path) -> tuple[np.ndarray, str | None]:
   """read_points(path) and a note when non-finite rows were dropped (None otherwise)."""
   with warnings.catch_warnings(record=True) as caught:
@@ -298,12 +308,7 @@ def main(argv):
   flow_Nx3 = predictor(pc1, pc2, num_iters=num_iters, max_points=max_points, full=FLAGS.full,
                        corr_chunk=FLAGS["corr-chunk"].value, seed=FLAGS.seed,
                        names=(pc1_path, pc2_path), optimise=optimise).astype(np.float32)
-  try:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as f:
-      np.save(f, flow_Nx3)
-  except OSError as e:
-    raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
+  save_flow(out, flow_Nx3)
   if note1:
     print(f"note: {note1}; {out} has one row per remaining PC1 row, in file order", file=sys.stderr)
   if note2:
@@ -313,7 +318,8 @@ def main(argv):
   how = ("whole clouds" if FLAGS.full or not max_points or max(len(pc1), len(pc2)) <= max_points
          else f"sampled to {max_points} points, flow mapped back to every PC1 point")
   how += (f"; {num_iters} iterations" if FLAGS.method in methods.NEEDS_NETWORK else "") + (
-    f", then {optimise.steps} test-time steps" if optimise.steps else "") + f"; method {FLAGS.method}"
+    f", then {optimise.steps} test-time steps" if optimise.steps else "")
+  how += f"; method {FLAGS.method}"
   print(f"{out}: flow of {len(pc1)} points ({how}; {predictor.name})",
         file=sys.stderr)
   if FLAGS.render:

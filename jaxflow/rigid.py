@@ -13,7 +13,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from jaxflow import geometry
+from jaxflow import geometry, objectives
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,3 +104,17 @@ def rigid_flow(p_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3):
   """Flow of each point under its cluster's motion p -> R (p - c) + c + t."""
   moved = jnp.einsum("nij,nj->ni", r_Nx3x3[labels_N], p_Nx3 - cen_Nx3[labels_N])
   return moved + cen_Nx3[labels_N] + t_Nx3[labels_N] - p_Nx3
+
+
+def choose(labels_BxN, flows, pc1_BxNx3, pc2_BxMx3, truncate: float, chunk: int = 2048):
+  """Per cluster, the candidate flow (of `flows`, each B x N x 3) whose warped points lie nearest
+  pc2 on average (truncated squared distance to the nearest pc2 point); ties go to the first."""
+  costs = []
+  for flow in flows:
+    warped = pc1_BxNx3 + flow
+    sq_BxN = objectives.matched_sq(warped, pc2_BxMx3, objectives.nearest(warped, pc2_BxMx3, chunk))
+    per = jax.vmap(lambda c, lab: jax.ops.segment_sum(c, lab, num_segments=c.shape[0]))
+    costs.append(per(jnp.minimum(sq_BxN, truncate**2), labels_BxN))
+  best_BxN = jnp.argmin(jnp.stack(costs), axis=0)  # per cluster slot
+  pick_BxN = jnp.take_along_axis(best_BxN, labels_BxN, axis=1)
+  return jnp.select([pick_BxN[..., None] == i for i in range(len(flows))], list(flows))
