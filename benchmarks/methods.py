@@ -12,12 +12,12 @@ compiled method (compilation excluded; for optimise the network's time is includ
 import argparse
 import dataclasses
 import json
+import os
 import pathlib
 import platform
 import time
 
 import jax
-import numpy as np
 
 from jaxflow import evaluation, methods
 from jaxflow.data import eval_batches, open_dataset
@@ -70,7 +70,7 @@ def main():
     print(f"| {method} | {name} ({r['pairs']}) | {r['epe']:.4f} | {r['acc_strict']:.1f} | "
           f"{r['acc_relax']:.1f} | {r['outliers']:.1f} | {r['ms_per_pair'] / 1000:.1f} |")
   if args.json:
-    machine = {"cpu_count": jax.local_device_count(), "platform": platform.platform(),
+    machine = {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                "processor": platform.processor(), "jax": jax.__version__}
     pathlib.Path(args.json).write_text(json.dumps(
       {"machine": machine, "num_points": args.num_points, "results": results}, indent=2,

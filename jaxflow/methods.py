@@ -33,9 +33,9 @@ class Optimise:
   motion of their flow, optimised against pc2 for `rigid_steps` steps (6 numbers a cluster); then
   `polish` free-vector steps from that flow (0: none)."""
   refine: optimiser.Settings = optimiser.Settings(
-    model="flow", objective="grid", steps=1000, learning_rate=0.05, smoothness=1.0)
+    model="flow", objective="grid", steps=400, learning_rate=0.05, smoothness=1.0)
   clusters: rigid.Settings = rigid.Settings()
-  rigid_steps: int = 300
+  rigid_steps: int = 150
   rigid_learning_rate: float = 0.01
   choose: bool = True  # per cluster, keep the rigid flow only where it fits pc2 better
   polish: int = 0
@@ -62,20 +62,22 @@ def settings(method: str, steps: int | None = None):
 def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise):
   """The `optimise` method's flow from a starting flow (the network's), and the info of its first
   optimisation (jaxflow.optimiser.optimise)."""
-  flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.refine)
+  grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.refine)  # once for every stage
+  flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.refine, grids=grids)
   if chosen.rigid_steps:
     labels = rigid.clusters(pc1_BxNx3, flow, chosen.clusters, chunk=chosen.refine.chunk)
     motions = rigid.fit(pc1_BxNx3, flow, labels, chosen.clusters.min_points)
     stage = dataclasses.replace(chosen.refine, model="rigid", steps=chosen.rigid_steps,
                                 learning_rate=chosen.rigid_learning_rate, smoothness=0.0)
-    fitted = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions))[0]
+    fitted = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions), grids)[0]
     if chosen.choose:
       fitted = rigid.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3, chosen.refine.truncate,
                             chosen.refine.chunk)
     flow = fitted
   if chosen.polish:
     flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3,
-                              dataclasses.replace(chosen.refine, steps=chosen.polish))[0]
+                              dataclasses.replace(chosen.refine, steps=chosen.polish),
+                              grids=grids)[0]
   return flow, info
 
 

@@ -197,25 +197,39 @@ def _one_pair(pair, grids, settings: Settings):
   return best_flow, info
 
 
+def _centre(pc1_BxNx3):
+  return jnp.mean(pc1_BxNx3, axis=1, keepdims=True)
+
+
+def distance_grids(pc1_BxNx3, pc2_BxMx3, settings: Settings):
+  """The distance grids `optimise` builds for the grid objective (of pc2, and of pc1 for NSFP's
+  cycle term), in its centred frame: build once, pass to several `optimise` calls on a pair."""
+  if settings.objective != "grid":
+    return ((), ())
+  centre_Bx1x3 = _centre(pc1_BxNx3)
+  margin = settings.truncate + 2 * settings.cell
+  grids = (objectives.distance_grid(pc2_BxMx3 - centre_Bx1x3, settings.cell, settings.max_cells,
+                                    margin),)
+  if settings.model == "mlp" and settings.cycle:
+    return grids + (objectives.distance_grid(pc1_BxNx3 - centre_Bx1x3, settings.cell,
+                                             settings.max_cells, margin),)
+  return grids + (grids[0],)  # unused
+
+
 @functools.partial(jax.jit, static_argnames="settings")
-def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=()):
+def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(), grids=None):
   """(flow B x N x 3 of the lowest loss, info: B-vectors steps, stopped (early stopping fired),
   loss_start, loss_best, finite). Model "rigid" needs `clusters` = (labels, R, centroid,
-  translation) from jaxflow.rigid (`clusters`, `fit`) and does not use `init`."""
+  translation) from jaxflow.rigid (`clusters`, `fit`) and does not use `init`. `grids`: those of
+  `distance_grids` for these clouds and settings (None: built here)."""
   if settings.model == "rigid" and len(clusters) != 4:
     raise ValueError("optimiser model 'rigid' needs clusters = (labels, R, centroid, translation)")
-  centre_Bx1x3 = jnp.mean(pc1_BxNx3, axis=1, keepdims=True)
+  if grids is None:
+    grids = distance_grids(pc1_BxNx3, pc2_BxMx3, settings)
+  centre_Bx1x3 = _centre(pc1_BxNx3)
   pc1_BxNx3, pc2_BxMx3 = pc1_BxNx3 - centre_Bx1x3, pc2_BxMx3 - centre_Bx1x3
   if clusters:  # the centroids move with the clouds
     clusters = (clusters[0], clusters[1], clusters[2] - centre_Bx1x3, clusters[3])
-  grids = ((), ())
-  if settings.objective == "grid":
-    margin = settings.truncate + 2 * settings.cell
-    grids = (objectives.distance_grid(pc2_BxMx3, settings.cell, settings.max_cells, margin),)
-    if settings.model == "mlp" and settings.cycle:
-      grids += (objectives.distance_grid(pc1_BxNx3, settings.cell, settings.max_cells, margin),)
-    else:
-      grids += (grids[0],)  # unused
   fn = lambda *pair_and_grids: _one_pair(pair_and_grids[:4], pair_and_grids[4], settings)
   return jax.vmap(fn)(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters, grids)
 

@@ -20,7 +20,7 @@ from jaxflow import geometry, objectives
 class Settings:
   neighbours: int = 8
   radius: float = 0.5  # metres between linked points
-  flow_tolerance: float = 0.1  # metres between the flows of linked points
+  flow_tolerance: float = 0.3  # metres between the flows of linked points
   min_points: int = 8  # smaller clusters keep a pure translation (their mean flow)
   propagation: int = 64  # label-propagation rounds at most (each also jumps labels to labels)
 
