@@ -11,6 +11,8 @@ iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; 
 default to config.eval.dataset and config.eval.split. A dataset with ego-motion flow and labels
 (opensf:DIR) also gets the three-way EPE (FD, FS, BS and their mean) in the table and the JSON;
 --save-flows DIR writes the flow of every pair (one .npy per pair, named by the pair).
+--method nsfp|optimise evaluates the per-pair optimisation methods instead of the network alone
+(docs/methods.md).
 """
 
 from jaxflow import cli, distributed, evaluation
@@ -32,6 +34,10 @@ def _define_flags():
   flags.DEFINE_string("save-flows", None, "Write the flow of every pair into this folder, one "
                       "NAME.npy per pair (jaxflow.export; the evaluated points: with "
                       "--config.eval.num_points=0 every point of pc1).")
+  flags.DEFINE_enum("method", "network", ["network", "nsfp", "optimise"],
+                    "network: the paper's protocol; nsfp: the NSFP baseline (no checkpoint); "
+                    "optimise: the network's flow refined per pair (docs/methods.md).")
+  flags.DEFINE_integer("steps", None, "Cap the optimisation steps of nsfp / optimise.")
 
 
 def main(argv):
@@ -44,7 +50,7 @@ def main(argv):
   model_fields = evaluation.requested_model_fields(FLAGS["config"])
   evaluation.evaluate_checkpoint(FLAGS.checkpoint, FLAGS.config, FLAGS.dataset, FLAGS.split,
                                  model_fields, FLAGS.json, FLAGS.render,
-                                 FLAGS["save-flows"].value)
+                                 FLAGS["save-flows"].value, FLAGS.method, FLAGS.steps)
 
 
 def run():

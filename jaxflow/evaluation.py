@@ -24,7 +24,7 @@ import numpy as np
 
 from tqdm import tqdm
 
-from jaxflow import checkpointing, distributed, export, model_fields, test_time
+from jaxflow import checkpointing, distributed, export, methods, model_fields, test_time
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.metrics import METRICS, ThreeWayAverage, format_three_way, per_pair_metrics
@@ -53,9 +53,11 @@ def requested_model_fields(config_flag) -> list[str]:
 
 
 def model_predict_fn(model, num_iters: int, refine: bool,
-                     optimise: test_time.Settings = test_time.Settings()):
+                     optimise: test_time.Settings = test_time.Settings(),
+                     method: str = "network", method_settings=None, with_info: bool = False):
   """jit (params, pc1, pc2) -> flow B x N x 3: the refined flow, or the last iteration's; then
-  `optimise.steps` steps of test-time optimisation when > 0 (jaxflow.test_time)."""
+  `optimise.steps` steps of test-time optimisation when > 0 (jaxflow.test_time); `method`
+  (jaxflow.methods) turns it into the nsfp or optimise flow (model None for nsfp)."""
 
   def predict(params, pc1_BxNx3, pc2_BxMx3):
     out = model.apply({"params": params}, pc1_BxNx3, pc2_BxMx3, num_iters=num_iters, refine=refine)
@@ -64,7 +66,7 @@ def model_predict_fn(model, num_iters: int, refine: bool,
       flow = test_time.optimise_flow(flow, pc1_BxNx3, pc2_BxMx3, optimise)[0]
     return flow
 
-  return jax.jit(predict)
+  return jax.jit(methods.flow_fn(method, predict, method_settings, with_info))
 
 
 _metrics_fn = jax.jit(per_pair_metrics)
@@ -128,15 +130,18 @@ def _output_name(refine: bool, optimise: test_time.Settings) -> str:
 
 def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int, num_iters: int = 32,
              refine: bool = False, seed: int = 0, render_dir=None,
-             optimise: test_time.Settings = test_time.Settings(), save_flows=None) -> dict:
+             optimise: test_time.Settings = test_time.Settings(), method: str = "network",
+             method_settings=None, save_flows=None) -> dict:
   """Metrics of the model's flow on every pair of `dataset`, with pairs and ms_per_pair (the
-  test-time optimisation included when `optimise.steps` > 0); save_flows: a folder that receives
-  the flow of every pair (jaxflow.export; the points evaluated: sampled unless num_points None)."""
-  predict = model_predict_fn(model, num_iters, refine, optimise)
+  test-time optimisation included when `optimise.steps` > 0; `method`: jaxflow.methods);
+  save_flows: a folder that receives the flow of every pair (jaxflow.export; the points evaluated:
+  sampled unless num_points None)."""
+  predict = model_predict_fn(model, num_iters, refine, optimise, method, method_settings)
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
   results = _run(predict, (distributed.local_copy(params),), batches, render_dir, total=total,
                  save_dir=save_flows)
   results["output"] = _output_name(refine, optimise)
+  results.update(methods.describe(method, method_settings or methods.settings(method)))
   if optimise.steps:
     results["test_time"] = dataclasses.asdict(optimise)
   return results
@@ -249,25 +254,31 @@ def load_model(checkpoint=None, config: ml_collections.ConfigDict | None = None,
 
 def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: str | None = None,
                         split: str | None = None, model_fields=(), json_path=None,
-                        render_dir=None, save_flows=None) -> dict:
+                        render_dir=None, save_flows=None, method: str = "network",
+                        steps: int | None = None) -> dict:
   """Evaluates a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
   The model comes from the checkpoint as `load_model` gives it; `config.eval` sets points (0: whole
   clouds), iterations, batch, seed, the test-time optimisation (`test_time`; steps 0: off) and,
-  unless given, the dataset and split.
+  unless given, the dataset and split. `method` (jaxflow.methods; `steps` caps its optimiser):
+  nsfp needs no checkpoint.
   """
+  chosen = methods.settings(method, steps)
   dataset = dataset or config.eval.dataset
   split = split or config.eval.split
   if not dataset:
     raise ConfigError("no dataset to evaluate: give --dataset FORMAT:ROOT")
-  model, params, saved, step, refine = load_model(checkpoint, config, model_fields)
-  checkpoint = checkpoint or SHIPPED_CHECKPOINT
+  model, params, step, refine = None, None, None, False
+  if method in methods.NEEDS_NETWORK:
+    model, params, _, step, refine = load_model(checkpoint, config, model_fields)
+    checkpoint = checkpoint or SHIPPED_CHECKPOINT
   ds = open_dataset(dataset, split=split)
   results = evaluate(model, params, ds, num_points=config.eval.num_points or None,
                      batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
                      refine=refine, seed=config.eval.seed, render_dir=render_dir,
-                     optimise=test_time.settings_from_config(config.eval), save_flows=save_flows)
-  results.update(dataset=dataset, split=split, checkpoint=str(checkpoint), step=step,
+                     optimise=test_time.settings_from_config(config.eval), method=method,
+                     method_settings=chosen, save_flows=save_flows)
+  results.update(dataset=dataset, split=split, checkpoint=checkpoint and str(checkpoint), step=step,
                  num_points=config.eval.num_points, num_iters=config.eval.num_iters)
   if not distributed.is_primary():
     return results

@@ -1,4 +1,5 @@
-"""The flow of every pair as files other tools read (`--save-flows DIR` of predict and evaluate.py).
+"""Flows as files other tools read: `save_flow` (--out of predict and jaxflow.nsfp) and
+`FlowSaver` (the flow of every pair, `--save-flows DIR` of predict and evaluate.py).
 
 One `.npy` per pair (float32 N x 3, row i the flow of pc1's point i as the model saw it), named by
 the pair: `flow_stem(pair.name)`, the pair's name with every run of characters other than letters,
@@ -12,6 +13,35 @@ import re
 import numpy as np
 
 from jaxflow.errors import ConfigError
+
+
+FLOW_SUFFIXES = (".npy", ".txt", ".csv")
+
+
+def check_flow_path(out: pathlib.Path):
+  """A ConfigError naming --out unless `out` is a file name with a suffix save_flow writes (checked
+  before any work is done)."""
+  if out.is_dir():
+    raise ConfigError(f"--out {out}: is a folder, expected a file name such as flow.npy")
+  if out.suffix.lower() not in FLOW_SUFFIXES:
+    raise ConfigError(f"--out {out}: unknown file type {out.suffix or '(no suffix)'!r}; "
+                      f"use one of {', '.join(FLOW_SUFFIXES)}")
+
+
+def save_flow(out: pathlib.Path, flow_Nx3):
+  """.npy (float32 N x 3) or text (.txt: x y z per line, .csv: comma separated); an unwritable path
+  is a ConfigError naming --out."""
+  out = pathlib.Path(out)
+  check_flow_path(out)
+  try:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".npy":
+      with open(out, "wb") as f:
+        np.save(f, flow_Nx3)
+    else:
+      np.savetxt(out, flow_Nx3, fmt="%.6f", delimiter="," if out.suffix.lower() == ".csv" else " ")
+  except OSError as e:
+    raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
 
 
 def flow_stem(name: str) -> str:

@@ -46,6 +46,12 @@ then optimises that flow for N steps against the clouds the model saw, with no g
 (jaxflow.test_time: Chamfer distance to PC2 plus smoothness); the mapping back to every PC1 point
 comes after it.
 
+Method (--method, jaxflow.methods, docs/methods.md): `optimise` (the command's default) refines the
+network's flow per pair against the clouds (fast distance-grid Chamfer, then one rigid motion per
+cluster of points); `network` is the network alone (the Python API's default, the paper's protocol);
+`nsfp` is the NSFP baseline (no checkpoint). --steps N caps the optimisation steps. An optimisation
+that did not converge says so in a note on stderr.
+
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
 than the model's neighbourhood config.model.knn) prints one line naming the file and the problem and
 exits with code 2.
@@ -62,7 +68,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import evaluation, export, geometry, ground, test_time
+from jaxflow import evaluation, export, geometry, ground, methods, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -83,6 +89,9 @@ class Predictor:
   config: ml_collections.ConfigDict  # the checkpoint's config (the model it was built from)
   refine: bool  # the refined flow (stage 2) or the last iteration's
   name: str = ""  # checkpoint path and step, for messages
+  method: str = "network"  # jaxflow.methods: network, nsfp (model None) or optimise
+  method_settings: object = None  # None: the method's defaults
+  notes: list = dataclasses.field(default_factory=list)  # non-convergence notes of the last call
   _fns: dict = dataclasses.field(default_factory=dict, repr=False)
 
   @property
@@ -93,10 +102,17 @@ class Predictor:
   def _fn(self, num_iters: int, corr_chunk: int, optimise: test_time.Settings):
     key = (num_iters, corr_chunk, optimise)
     if key not in self._fns:
-      model = self.model if corr_chunk == self.model.corr_chunk else self.model.clone(
-        corr_chunk=corr_chunk)
-      self._fns[key] = evaluation.model_predict_fn(model, num_iters, self.refine, optimise)
+      model = self.model if self.model is None or corr_chunk == self.model.corr_chunk else (
+        self.model.clone(corr_chunk=corr_chunk))
+      fn = evaluation.model_predict_fn(model, num_iters, self.refine, optimise, self.method,
+                                       self.method_settings, with_info=True)
+      self._fns[key] = lambda *args: self._noted(*fn(*args))
     return self._fns[key]
+
+  def _noted(self, flow, info):
+    note = methods.convergence_note(self.method, info)
+    self.notes = [note] if note else []
+    return flow
 
   def __call__(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
                max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
@@ -127,7 +143,7 @@ class Predictor:
     idx2 = sample_indices(len(pc2_Mx3), max_points, rng)[0] if len(pc2_Mx3) > max_points else None
     sub1 = pc1_Nx3 if idx1 is None else pc1_Nx3[idx1]
     sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
-    fn = self._fn(num_iters, self.model.corr_chunk, optimise)
+    fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0), optimise)
     flow_Sx3 = fn(self.params, sub1[None], sub2[None])[0]
     if idx1 is None:
       return np.asarray(flow_Sx3)
@@ -175,15 +191,20 @@ def _cloud(points, name, min_points: int) -> np.ndarray:
 
 
 def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = None,
-                   model_fields=()) -> Predictor:
+                   model_fields=(), method: str = "network", steps: int | None = None) -> Predictor:
   """The model of a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
   `model_fields` names fields of `config.model` the user asked for; as in evaluate.py one that
   contradicts the checkpoint is a CheckpointError, except the runtime fields (corr_chunk,
-  infer_truncate_k), which are taken from `config`.
+  infer_truncate_k), which are taken from `config`. `method` (jaxflow.methods; `steps` caps its
+  optimiser): nsfp loads no checkpoint.
   """
+  chosen = methods.settings(method, steps)
+  if method not in methods.NEEDS_NETWORK:
+    return Predictor(None, None, ml_collections.ConfigDict({"model": {"knn": 1}}), False,
+                     name="NSFP, no network", method=method, method_settings=chosen)
   model, params, saved, step, refine = evaluation.load_model(checkpoint, config, model_fields)
-  return Predictor(model, params, saved, refine,
+  return Predictor(model, params, saved, refine, method=method, method_settings=chosen,
                    name=f"{checkpoint or SHIPPED_CHECKPOINT} (step {step})")
 
 
@@ -248,28 +269,12 @@ def read_cloud(path) -> tuple[np.ndarray, str | None]:
 # The command line.
 
 SIZE_RATIO_WARNING = 100  # predict warns when one cloud has this many times the other's points
-FLOW_SUFFIXES = (".npy", ".txt", ".csv")
-
-
 def _used(name: str, n: int, max_points: int | None, whole: bool) -> str:
   """How a cloud of n points went into the model, for the closing message."""
   if whole or n <= max_points:
     return f"{name}: all {n} points used"
   return (f"{name}: sampled to {max_points} of {n} points"
           + (", flow mapped back to every point" if name == "PC1" else ""))
-
-
-def _write_flow(out: pathlib.Path, flow_Nx3):
-  """.npy (float32 N x 3) or text (.txt: x y z per line, .csv: comma separated)."""
-  try:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if out.suffix.lower() == ".npy":
-      with open(out, "wb") as f:
-        np.save(f, flow_Nx3)
-    else:
-      np.savetxt(out, flow_Nx3, fmt="%.6f", delimiter="," if out.suffix.lower() == ".csv" else " ")
-  except OSError as e:
-    raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
 
 
 def _define_flags():
@@ -300,6 +305,10 @@ def _define_flags():
                      "horizontal distance (m) of the sensor; 0: all.")
   flags.DEFINE_string("save-flows", None, "Also write the flow into this folder as NAME.npy, NAME "
                       "made from PC1,PC2 (jaxflow.export; the naming of evaluate.py --save-flows).")
+  flags.DEFINE_enum("method", "optimise", list(methods.METHODS), "optimise (default): the network's "
+                    "flow refined per pair; network: the network alone; nsfp: the NSFP baseline, no "
+                    "checkpoint (docs/methods.md).")
+  flags.DEFINE_integer("steps", None, "Cap the optimisation steps of nsfp / optimise.")
   return flags.FLAGS
 
 
@@ -328,16 +337,13 @@ def main(argv):
   if not FLAGS.out and not FLAGS["save-flows"].value:
     raise ConfigError("give --out FLOW.npy or --save-flows DIR (or both)")
   out = pathlib.Path(FLAGS.out or "")
-  if FLAGS.out and out.is_dir():
-    raise ConfigError(f"--out {out}: is a folder, expected a file name such as flow.npy")
-  if FLAGS.out and out.suffix.lower() not in FLOW_SUFFIXES:
-    raise ConfigError(f"--out {out}: unknown file type {out.suffix or '(no suffix)'!r}; "
-                      f"use one of {', '.join(FLOW_SUFFIXES)}")
+  if FLAGS.out:
+    export.check_flow_path(out)
 
   pc1, note1 = read_cloud(pc1_path)
   pc2, note2 = read_cloud(pc2_path)
   optimise = test_time.settings_from_config(config.eval)
-  predictor = load_predictor(FLAGS.checkpoint, config, model_fields)
+  predictor = load_predictor(FLAGS.checkpoint, config, model_fields, FLAGS.method, FLAGS.steps)
   kwargs = dict(num_iters=num_iters, max_points=max_points, full=FLAGS.full,
                 corr_chunk=FLAGS["corr-chunk"].value, seed=FLAGS.seed, names=(pc1_path, pc2_path),
                 optimise=optimise)
@@ -350,7 +356,7 @@ def main(argv):
   flow_Nx3 = flow_Nx3.astype(np.float32)
   written = []
   if FLAGS.out:
-    _write_flow(out, flow_Nx3)
+    export.save_flow(out, flow_Nx3)
     written.append(out)
   if FLAGS["save-flows"].value:
     written.append(export.FlowSaver(FLAGS["save-flows"].value).save(f"{pc1_path},{pc2_path}",
@@ -360,12 +366,15 @@ def main(argv):
           file=sys.stderr)
   if note2:
     print(f"note: {note2}", file=sys.stderr)
+  for note in predictor.notes:
+    print(f"note: {note}", file=sys.stderr)
   whole = FLAGS.full or not max_points
   sizes = sweep.kept if FLAGS.lidar else (len(pc1), len(pc2))
   how = ("ground and far points removed; " if FLAGS.lidar else "")
   how += "; ".join(_used(name, n, max_points, whole) for name, n in zip(("PC1", "PC2"), sizes))
-  how += f"; {num_iters} iterations" + (f", then {optimise.steps} test-time steps" if optimise.steps
-                                         else "")
+  how += (f"; {num_iters} iterations" if FLAGS.method in methods.NEEDS_NETWORK else "") + (
+    f", then {optimise.steps} test-time steps" if optimise.steps else "")
+  how += f"; method {FLAGS.method}"
   print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points ({how}; {predictor.name})",
         file=sys.stderr)
   ratio = max(len(pc1), len(pc2)) / min(len(pc1), len(pc2))

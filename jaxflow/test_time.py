@@ -5,17 +5,17 @@ Starting from the network's flow, Adam minimises, per pair and with no ground tr
   clipped at `truncate` m so that occluded points and points leaving the view do not pull)
   + `smoothness` x the mean L1 difference of the flow over pc1's `neighbours`-nearest graph.
 These are the self-supervised losses of NSFP and SCOOP's test-time refinement. The nearest points are
-searched again every few steps and are constants of the gradient (as in a Chamfer loss).
+searched again every few steps and are constants of the gradient (as in a Chamfer loss). The loop
+is jaxflow.optimiser's (free flow vectors, exact Chamfer; the flow of the lowest loss is returned),
+the terms jaxflow.objectives'.
 """
 
 import dataclasses
 import functools
 
 import jax
-import jax.numpy as jnp
-import optax
 
-from jaxflow import geometry
+from jaxflow import objectives, optimiser
 from jaxflow.errors import ConfigError
 
 
@@ -58,51 +58,33 @@ def correspondences(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, chunk: int = 0):
   """Indices of the nearest pc2 point of each warped pc1 point (B x N x 1) and of the nearest warped
   point of each pc2 point (B x M x 1), for the flow given."""
   warped = pc1_BxNx3 + flow_BxNx3
-  return (geometry.knn(warped, pc2_BxMx3, 1, chunk=chunk),
-          geometry.knn(pc2_BxMx3, warped, 1, chunk=chunk))
+  return objectives.nearest(warped, pc2_BxMx3, chunk), objectives.nearest(pc2_BxMx3, warped, chunk)
 
 
 def objective(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, nbr_BxNxK, match, settings: Settings):
   """The minimised loss, one value per pair (B), with the nearest points `match` (from
   `correspondences`) held fixed: they carry no gradient, their distances do."""
-  warped = pc1_BxNx3 + flow_BxNx3
-  to_pc2_BxNx1, to_warped_BxMx1 = match
-  cap = settings.truncate**2
-  forward = jnp.sum((warped - geometry.gather(pc2_BxMx3, to_pc2_BxNx1)[:, :, 0]) ** 2, axis=-1)
-  backward = jnp.sum((pc2_BxMx3 - geometry.gather(warped, to_warped_BxMx1)[:, :, 0]) ** 2, axis=-1)
-  chamfer = jnp.mean(jnp.minimum(forward, cap), axis=1) + jnp.mean(jnp.minimum(backward, cap), axis=1)
-  diff = geometry.gather(flow_BxNx3, nbr_BxNxK) - flow_BxNx3[:, :, None]
-  return chamfer + settings.smoothness * jnp.mean(jnp.sum(jnp.abs(diff), axis=-1), axis=(1, 2))
+  chamfer = objectives.chamfer_terms(pc1_BxNx3 + flow_BxNx3, pc2_BxMx3, match, settings.truncate)
+  return chamfer + settings.smoothness * objectives.smoothness(flow_BxNx3, nbr_BxNxK)
+
+
+def optimiser_settings(settings: Settings) -> optimiser.Settings:
+  """The same optimisation in jaxflow.optimiser's terms (free flow vectors, exact Chamfer)."""
+  return optimiser.Settings(
+    model="flow", objective="exact", steps=settings.steps, learning_rate=settings.learning_rate,
+    smoothness=settings.smoothness, neighbours=settings.neighbours, truncate=settings.truncate,
+    refresh=settings.refresh, chunk=settings.chunk)
 
 
 @functools.partial(jax.jit, static_argnames="settings")
 def optimise_flow(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings):
-  """The flow after `settings.steps` Adam steps on `objective` (each pair on its own; the nearest
-  points searched again every `settings.refresh` steps); returns (flow B x N x 3, objective before
-  and after, B each, with the nearest points of the flow it is given)."""
-  nbr = geometry.knn(pc1_BxNx3, pc1_BxNx3, settings.neighbours + 1, chunk=settings.chunk)[:, :, 1:]
-  opt = optax.adam(settings.learning_rate)
+  """The flow of the lowest objective within `settings.steps` Adam steps (jaxflow.optimiser, each
+  pair on its own; the nearest points searched again every `settings.refresh` steps); returns
+  (flow B x N x 3, objective before and after, B each, with the nearest points of the flow)."""
+  flow, _ = optimiser.optimise(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, optimiser_settings(settings))
+  nbr = objectives.neighbours(pc1_BxNx3, settings.neighbours, settings.chunk)
   search = functools.partial(correspondences, pc1_BxNx3=pc1_BxNx3, pc2_BxMx3=pc2_BxMx3,
                              chunk=settings.chunk)
-
-  def step(carry, match):
-    flow, state = carry
-    grads = jax.grad(lambda f: jnp.sum(objective(f, pc1_BxNx3, pc2_BxMx3, nbr, match, settings)))(flow)
-    updates, state = opt.update(grads, state)  # Adam is elementwise: the pairs stay independent
-    return (flow + updates, state), None
-
-  def block(carry, _):
-    match = search(carry[0])
-    carry, _ = jax.lax.scan(lambda c, _: step(c, match), carry, None, length=settings.refresh)
-    return carry, None
-
-  blocks, rest = divmod(settings.steps, settings.refresh)
-  carry = (flow_BxNx3, opt.init(flow_BxNx3))
-  carry, _ = jax.lax.scan(block, carry, None, length=blocks)
-  if rest:
-    match = search(carry[0])
-    carry, _ = jax.lax.scan(lambda c, _: step(c, match), carry, None, length=rest)
-  flow = carry[0]
   before = objective(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, nbr, search(flow_BxNx3), settings)
   after = objective(flow, pc1_BxNx3, pc2_BxMx3, nbr, search(flow), settings)
   return flow, before, after

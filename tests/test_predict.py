@@ -100,6 +100,7 @@ def predictor(workdir):
 def runs(files, workdir):
   """Every command-line case, started at once (each pays jax's import) and collected."""
   ck = ["--checkpoint", workdir]
+  net = ck + ["--method", "network"]  # the API's default (the command's is optimise)
   d = files
   cases = {
     "missing": _cli(d / "nope.npy", d / "pc2.npy", "--out", d / "o1.npy", *ck),
@@ -112,22 +113,22 @@ def runs(files, workdir):
                            d / "nothing_here"),
     "config_contradicts": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o8.npy", *ck,
                                "--config", os.path.join(ROOT, "configs", "default.py")),
-    "npy": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_npy.npy", *ck, "--iters", 4,
+    "npy": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_npy.npy", *net, "--iters", 4,
                 "--render", d / "view.png"),
-    "ply": _cli(d / "pc1.ply", d / "pc2.ply", "--out", d / "flow_ply.npy", *ck, "--iters", 4),
-    "nan": _cli(d / "nan.npy", d / "pc2.npy", "--out", d / "flow_nan.npy", *ck, "--iters", 4,
+    "ply": _cli(d / "pc1.ply", d / "pc2.ply", "--out", d / "flow_ply.npy", *net, "--iters", 4),
+    "nan": _cli(d / "nan.npy", d / "pc2.npy", "--out", d / "flow_nan.npy", *net, "--iters", 4,
                 "--max-points", 100),
-    "candidates": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_k4.npy", *ck, "--iters", 4,
+    "candidates": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_k4.npy", *net, "--iters", 4,
                        "--config.model.infer_truncate_k=4"),  # without a --config file
-    "test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_tt.npy", *ck, "--iters", 4,
+    "test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_tt.npy", *net, "--iters", 4,
                       "--config.eval.test_time.steps=20"),
     "bad_test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o9.npy", *ck,
                           "--config.eval.test_time.learning_rate=-1"),
-    "lidar": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_lidar.npy", *ck, "--lidar",
+    "lidar": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_lidar.npy", *net, "--lidar",
                   "--iters", 2, "--save-flows", d / "flows"),
     "bad_up": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "o10.npy", *ck, "--lidar",
                    "--up", "x"),  # no ground plane across the x axis
-    "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *ck,
+    "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *net,
                          "--config", os.path.join(ROOT, "configs", "default.py") + ":smoke"),
   }
   env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),

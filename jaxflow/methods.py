@@ -1,0 +1,119 @@
+"""The three ways jaxflow estimates a flow, as used by evaluate.py and jaxflow.predict (`--method`).
+
+- `network`: the trained network alone (the paper's protocol; evaluate.py's default).
+- `nsfp`: Neural Scene Flow Prior (Li et al. 2021, the paper's Tables 4 and 7 baseline): NSFP's
+  MLP optimised per pair from zero flow, no network, no checkpoint (`optimiser.NSFP`).
+- `optimise`: the network's flow refined per pair by the fast optimiser (distance-grid Chamfer +
+  smoothness, then the piecewise-rigid steps of jaxflow.rigid): the recommended method for real
+  data, and predict's default.
+
+    fn = flow_fn("optimise", network)   # network: (params, pc1, pc2) -> flow, B x N x 3
+    flow_BxNx3 = jax.jit(fn)(params, pc1_BxNx3, pc2_BxMx3)
+"""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflow import clusters, optimiser
+from jaxflow.errors import ConfigError
+
+METHODS = ("network", "nsfp", "optimise")
+NEEDS_NETWORK = ("network", "optimise")
+# The nsfp method: NSFP's published settings with the Chamfer terms read from distance grids (the
+# exact nearest-point search every step costs ~1 s a step at 8192 points on a 2-core CPU).
+NSFP = dataclasses.replace(optimiser.NSFP, objective="grid")
+
+
+@dataclasses.dataclass(frozen=True)
+class Optimise:
+  """The `optimise` method: `refine` (the network's flow optimised as free vectors); then, for
+  `rigid_steps` > 0, clusters of points that move together (jaxflow.clusters) each get the rigid
+  motion of their flow, optimised against pc2 for `rigid_steps` steps (6 numbers a cluster); then
+  `polish` free-vector steps from that flow (0: none)."""
+  refine: optimiser.Settings = optimiser.Settings(
+    model="flow", objective="grid", steps=400, learning_rate=0.05, smoothness=1.0)
+  clusters: clusters.Settings = clusters.Settings()
+  rigid_steps: int = 150
+  rigid_learning_rate: float = 0.01
+  choose: bool = True  # per cluster, keep the rigid flow only where it fits pc2 better
+  polish: int = 0
+
+
+def settings(method: str, steps: int | None = None):
+  """The default settings of a method (None for `network`); `steps` caps the optimiser's steps."""
+  if method not in METHODS:
+    raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+  if method == "network":
+    return None
+  if steps is not None and steps < 0:
+    raise ConfigError(f"--steps must be >= 0, got {steps}")
+  if method == "nsfp":
+    return NSFP if steps is None else dataclasses.replace(NSFP, steps=steps)
+  chosen = Optimise()
+  if steps is not None:
+    chosen = dataclasses.replace(chosen, refine=dataclasses.replace(chosen.refine, steps=steps),
+                                 rigid_steps=min(chosen.rigid_steps, steps),
+                                 polish=min(chosen.polish, steps))
+  return chosen
+
+
+def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise):
+  """The `optimise` method's flow from a starting flow (the network's), and the info of its first
+  optimisation (jaxflow.optimiser.optimise)."""
+  grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.refine)  # once for every stage
+  flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.refine, grids=grids)
+  if chosen.rigid_steps:
+    labels = clusters.clusters(pc1_BxNx3, flow, chosen.clusters, chunk=chosen.refine.chunk)
+    motions = clusters.fit(pc1_BxNx3, flow, labels, chosen.clusters.min_points)
+    stage = dataclasses.replace(chosen.refine, model="rigid", steps=chosen.rigid_steps,
+                                learning_rate=chosen.rigid_learning_rate, smoothness=0.0)
+    fitted = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions), grids)[0]
+    if chosen.choose:
+      fitted = clusters.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3, chosen.refine.truncate,
+                            chosen.refine.chunk)
+    flow = fitted
+  if chosen.polish:
+    flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3,
+                              dataclasses.replace(chosen.refine, steps=chosen.polish),
+                              grids=grids)[0]
+  return flow, info
+
+
+def flow_fn(method: str, network=None, chosen=None, with_info: bool = False):
+  """(params, pc1 B x N x 3, pc2 B x M x 3) -> flow B x N x 3 of `method` (with `with_info`:
+  (flow, info), info None for `network`). `network(params, pc1, pc2)` gives the network's flow;
+  `chosen`: the method's settings (default `settings(method)`)."""
+  chosen = settings(method) if chosen is None else chosen
+  if method in NEEDS_NETWORK and network is None:
+    raise ConfigError(f"method {method!r} needs a network")
+
+  def run(params, pc1_BxNx3, pc2_BxMx3):
+    if method == "network":
+      return network(params, pc1_BxNx3, pc2_BxMx3), None
+    if method == "nsfp":
+      return optimiser.optimise(jnp.zeros_like(pc1_BxNx3), pc1_BxNx3, pc2_BxMx3, chosen)
+    return optimise_flow(network(params, pc1_BxNx3, pc2_BxMx3), pc1_BxNx3, pc2_BxMx3, chosen)
+
+  return run if with_info else (lambda *args: run(*args)[0])
+
+
+def describe(method: str, chosen) -> dict:
+  """The method and its settings, for results files."""
+  if chosen is None:
+    return {"method": method}
+  return {"method": method, "method_settings": dataclasses.asdict(chosen)}
+
+
+def convergence_note(method: str, info) -> str | None:
+  """A line for the user when an optimisation did not converge (None when it did)."""
+  if info is None:
+    return None
+  finite = np.asarray(info["finite"])
+  if not finite.all():
+    return f"{method}: the optimisation diverged (non-finite flow); the starting flow is returned"
+  if method == "nsfp" and not np.asarray(info["stopped"]).all():
+    return (f"{method}: early stopping did not fire within {int(np.max(info['steps']))} steps; "
+            "the flow of the lowest loss is returned but may not have converged")
+  return None

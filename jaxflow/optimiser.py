@@ -1,0 +1,244 @@
+"""Per-pair flow optimisation with no ground truth: NSFP, the fast optimiser, test-time refinement.
+
+    flow_BxNx3, info = optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, Settings(...))
+
+The flow is `init + g(params)`, where g is either a free vector per point (`model="flow"`: the
+warm-started refinement of a network's flow) or NSFP's coordinate MLP of pc1 (`model="mlp"`). Adam
+minimises, per pair,
+  Chamfer(pc1 + flow, pc2) + smoothness x kNN smoothness [+ Chamfer(back, pc1), the cycle term:
+  back = pc1 + flow - h(pc1 + flow), h a second MLP (NSFP's backward flow)],
+with the Chamfer terms either exact (two-way, nearest points searched every `refresh` steps and
+held fixed in between) or read from distance grids built once per pair (`objective="grid"`: the
+one-way pc1 + flow -> pc2 term, O(N) a step; jaxflow.objectives). Every pair runs its own
+early stopping (the loss has not fallen by `min_delta` for `patience` steps) and returns the flow of
+its lowest loss. The loop is one `lax.while_loop` over blocks of `refresh` scanned steps: no host
+round trip per step. Clouds are centred on pc1's mean first (the flow does not change with a
+translation of both; far from the origin float32 would lose the centimetres).
+"""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from jaxflow import clusters, objectives
+
+MODELS = ("flow", "mlp", "rigid")
+OBJECTIVES = ("exact", "grid")
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+  model: str = "flow"
+  objective: str = "grid"
+  steps: int = 1000  # at most
+  learning_rate: float = 0.01
+  weight_decay: float = 0.0  # L2 on the parameters, added to the gradient (torch Adam's)
+  smoothness: float = 0.0
+  neighbours: int = 8
+  truncate: float = 2.0  # metres: a farther nearest point stops pulling
+  cycle: bool = False  # model "mlp": NSFP's backward MLP and its Chamfer to pc1
+  patience: int = 0  # early stopping (0: run every step)
+  min_delta: float = 1e-4
+  refresh: int = 10  # steps between two nearest-point searches (exact), and between stopping tests
+  cell: float = 0.1  # metres, the finest grid cell (objective "grid")
+  max_cells: int = 2**22  # nodes per grid at most (16 MB); cells grow for large extents
+  width: int = 128  # model "mlp"
+  depth: int = 8  # ReLU layers of the MLP (then a linear one)
+  chunk: int = 2048  # rows of a nearest-point search built at a time (memory ~ chunk x M)
+  seed: int = 0  # the MLP's initial weights
+
+  def __post_init__(self):
+    if self.model not in MODELS:
+      raise ValueError(f"optimiser model must be one of {', '.join(MODELS)}, got {self.model!r}")
+    if self.objective not in OBJECTIVES:
+      raise ValueError(f"optimiser objective must be one of {', '.join(OBJECTIVES)}, "
+                       f"got {self.objective!r}")
+    for name, least in (("steps", 0), ("neighbours", 1), ("patience", 0), ("refresh", 1),
+                        ("max_cells", 8), ("width", 1), ("depth", 1), ("chunk", 0)):
+      if not isinstance(getattr(self, name), int) or getattr(self, name) < least:
+        raise ValueError(f"optimiser {name} must be an integer >= {least}, "
+                         f"got {getattr(self, name)!r}")
+    for name in ("learning_rate", "weight_decay", "smoothness", "truncate", "min_delta"):
+      if not getattr(self, name) >= 0:
+        raise ValueError(f"optimiser {name} must be >= 0, got {getattr(self, name)!r}")
+    if not self.cell > 0:
+      raise ValueError(f"optimiser cell must be > 0, got {self.cell!r}")
+
+
+def init_mlp(key, width: int, depth: int):
+  """[(W, b)] of depth + 1 dense layers 3 -> width ... -> 3, torch's default initialisation
+  (uniform in +-1/sqrt(fan_in)), as NSFP's published MLP."""
+  sizes = [3] + [width] * depth + [3]
+  layers = []
+  for key, (fan_in, fan_out) in zip(jax.random.split(key, len(sizes) - 1), zip(sizes, sizes[1:])):
+    kw, kb = jax.random.split(key)
+    bound = fan_in**-0.5
+    layers.append((jax.random.uniform(kw, (fan_in, fan_out), jnp.float32, -bound, bound),
+                   jax.random.uniform(kb, (fan_out,), jnp.float32, -bound, bound)))
+  return layers
+
+
+def apply_mlp(layers, x_Nx3):
+  h = x_Nx3
+  for w, b in layers[:-1]:
+    h = jax.nn.relu(h @ w + b)
+  w, b = layers[-1]
+  return h @ w + b
+
+
+def _init_params(settings: Settings, n: int):
+  if settings.model == "flow":
+    return {"flow": jnp.zeros((n, 3), jnp.float32)}
+  if settings.model == "rigid":  # a rotation vector and a translation a cluster slot
+    zeros = jnp.zeros((n, 3), jnp.float32)
+    return {"rotation": zeros, "translation": zeros}
+  forward, backward = jax.random.split(jax.random.key(settings.seed))
+  params = {"mlp": init_mlp(forward, settings.width, settings.depth)}
+  if settings.cycle:
+    params["inverse"] = init_mlp(backward, settings.width, settings.depth)
+  return params
+
+
+def _flow(params, init_Nx3, pc1_Nx3, clusters=()):
+  if "rotation" in params:  # clusters: (labels N, R N x 3 x 3, centroid, translation) of clusters.fit
+    labels_N, r_Nx3x3, cen_Nx3, t_Nx3 = clusters
+    r_Nx3x3 = jnp.einsum("nij,njk->nik", r_Nx3x3, clusters.rodrigues(params["rotation"]))
+    return rigid.rigid_flow(pc1_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3 + params["translation"])
+  residual = params["flow"] if "flow" in params else apply_mlp(params["mlp"], pc1_Nx3)
+  return init_Nx3 + residual
+
+
+def _loss(params, pair, nbr_NxK, grids, match, settings: Settings):
+  """The minimised loss of one pair; `match`: the held nearest points of the exact objective."""
+  init_Nx3, pc1_Nx3, pc2_Mx3, clusters = pair
+  flow = _flow(params, init_Nx3, pc1_Nx3, clusters)
+  warped = (pc1_Nx3 + flow)[None]
+  if settings.objective == "grid":
+    loss = objectives.grid_chamfer(grids[0], warped, settings.truncate)
+  else:
+    loss = objectives.chamfer_terms(warped, pc2_Mx3[None], match[:2], settings.truncate)
+  if "inverse" in params:
+    back = warped - apply_mlp(params["inverse"], warped[0])[None]
+    if settings.objective == "grid":
+      loss = loss + objectives.grid_chamfer(grids[1], back, settings.truncate)
+    else:
+      loss = loss + objectives.chamfer_terms(back, pc1_Nx3[None], match[2:], settings.truncate)
+  if settings.smoothness:
+    loss = loss + settings.smoothness * objectives.smoothness(flow[None], nbr_NxK[None])
+  return loss[0]
+
+
+def _search(params, pair, settings: Settings):
+  """The nearest points of the exact objective for the current flow (empty for the grid one)."""
+  if settings.objective == "grid":
+    return ()
+  init_Nx3, pc1_Nx3, pc2_Mx3, clusters = pair
+  chunk = settings.chunk
+  warped = (pc1_Nx3 + _flow(params, init_Nx3, pc1_Nx3, clusters))[None]
+  match = (objectives.nearest(warped, pc2_Mx3[None], chunk),
+           objectives.nearest(pc2_Mx3[None], warped, chunk))
+  if "inverse" in params:
+    back = warped - apply_mlp(params["inverse"], warped[0])[None]
+    match += (objectives.nearest(back, pc1_Nx3[None], chunk),
+              objectives.nearest(pc1_Nx3[None], back, chunk))
+  return match
+
+
+def _one_pair(pair, grids, settings: Settings):
+  init_Nx3, pc1_Nx3, _, clusters = pair
+  grids = jax.tree.map(lambda a: a[None], grids)  # the objectives take batches
+  nbr_NxK = (objectives.neighbours(pc1_Nx3[None], settings.neighbours, settings.chunk)[0]
+             if settings.smoothness else jnp.zeros((pc1_Nx3.shape[0], 1), jnp.int32))
+  opt = optax.chain(optax.add_decayed_weights(settings.weight_decay),
+                    optax.adam(settings.learning_rate))
+  params = _init_params(settings, pc1_Nx3.shape[0])
+  flow_of = lambda params: _flow(params, init_Nx3, pc1_Nx3, clusters)
+  loss_grad = jax.value_and_grad(_loss)
+  patience = settings.patience or settings.steps + 1
+
+  def step(carry, match):
+    params, state, best, best_flow, since, count = carry
+    active = (since < patience) & (count < settings.steps)
+    loss, grads = loss_grad(params, pair, nbr_NxK, grids, match, settings)
+    # The loss is that of the parameters before the step (as NSFP records it).
+    better = active & (loss < best) & jnp.isfinite(loss)
+    best_flow = jnp.where(better, flow_of(params), best_flow)
+    improved = active & (loss < best - settings.min_delta)
+    since = jnp.where(improved, 0, since + active)
+    best = jnp.where(better, loss, best)
+    updates, new_state = opt.update(grads, state, params)
+    keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(active, a, b), new, old)
+    params = keep(optax.apply_updates(params, updates), params)
+    return (params, keep(new_state, state), best, best_flow, since, count + active), None
+
+  def block(carry):
+    match = _search(carry[0], pair, settings)
+    carry, _ = jax.lax.scan(lambda c, _: step(c, match), carry, None, length=settings.refresh)
+    return carry
+
+  def running(carry):
+    return (carry[4] < patience) & (carry[5] < settings.steps)
+
+  start = _loss(params, pair, nbr_NxK, grids, _search(params, pair, settings), settings)
+  zero = jnp.zeros((), jnp.int32)
+  carry = (params, opt.init(params), jnp.float32(jnp.inf), flow_of(params), zero, zero)
+  params, _, best, best_flow, since, count = jax.lax.while_loop(running, block, carry)
+  if settings.steps == 0:
+    best, best_flow = start, flow_of(params)
+  # A flow that went non-finite (it cannot with finite inputs, but a user's cloud can surprise)
+  # falls back to the starting flow.
+  finite = jnp.all(jnp.isfinite(best_flow))
+  best_flow = jnp.where(finite, best_flow, init_Nx3)
+  info = {"steps": count, "stopped": since >= patience, "loss_start": start, "loss_best": best,
+          "finite": finite}
+  return best_flow, info
+
+
+def _centre(pc1_BxNx3):
+  return jnp.mean(pc1_BxNx3, axis=1, keepdims=True)
+
+
+def distance_grids(pc1_BxNx3, pc2_BxMx3, settings: Settings):
+  """The distance grids `optimise` builds for the grid objective (of pc2, and of pc1 for NSFP's
+  cycle term), in its centred frame: build once, pass to several `optimise` calls on a pair."""
+  if settings.objective != "grid":
+    return ((), ())
+  centre_Bx1x3 = _centre(pc1_BxNx3)
+  margin = settings.truncate + 2 * settings.cell
+  grids = (objectives.distance_grid(pc2_BxMx3 - centre_Bx1x3, settings.cell, settings.max_cells,
+                                    margin),)
+  if settings.model == "mlp" and settings.cycle:
+    return grids + (objectives.distance_grid(pc1_BxNx3 - centre_Bx1x3, settings.cell,
+                                             settings.max_cells, margin),)
+  return grids + (grids[0],)  # unused
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(), grids=None):
+  """(flow B x N x 3 of the lowest loss, info: B-vectors steps, stopped (early stopping fired),
+  loss_start, loss_best, finite). Model "rigid" needs `clusters` = (labels, R, centroid,
+  translation) from jaxflow.rigid (`clusters`, `fit`) and does not use `init`. `grids`: those of
+  `distance_grids` for these clouds and settings (None: built here)."""
+  if settings.model == "rigid" and len(clusters) != 4:
+    raise ValueError("optimiser model 'rigid' needs clusters = (labels, R, centroid, translation)")
+  if grids is None:
+    grids = distance_grids(pc1_BxNx3, pc2_BxMx3, settings)
+  centre_Bx1x3 = _centre(pc1_BxNx3)
+  pc1_BxNx3, pc2_BxMx3 = pc1_BxNx3 - centre_Bx1x3, pc2_BxMx3 - centre_Bx1x3
+  if clusters:  # the centroids move with the clouds
+    clusters = (clusters[0], clusters[1], clusters[2] - centre_Bx1x3, clusters[3])
+  fn = lambda *pair_and_grids: _one_pair(pair_and_grids[:4], pair_and_grids[4], settings)
+  return jax.vmap(fn)(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters, grids)
+
+
+# NSFP's published settings (github.com/Lilac-Lee/Neural_Scene_Flow_Prior): MLP 8 x 128, ReLU,
+# linear output; forward and backward MLPs; Adam lr 0.008 with weight decay 1e-4 (L2 added to the
+# gradient); the two-way Chamfer with squared distances over 2 m^2 truncated (clipped here: the same
+# gradients); nearest points searched every step; up to 5000 steps, early stopping patience 100,
+# min delta 1e-4.
+NSFP = Settings(model="mlp", objective="exact", steps=5000, learning_rate=0.008,
+                weight_decay=1e-4, smoothness=0.0, truncate=2**0.5, cycle=True, patience=100,
+                min_delta=1e-4, refresh=1)

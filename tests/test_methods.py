@@ -1,0 +1,183 @@
+"""jaxflow.optimiser / rigid / nsfp / methods: NSFP recovers a rigid motion, early stopping stops
+with the best-loss flow, the cluster fit against NumPy, degenerate clouds stay finite, and the
+methods through evaluate.py, jaxflow.predict and jaxflow.nsfp at toy size."""
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxflow import clusters, methods, nsfp, optimiser
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _rotation(angle):
+  c, s = np.cos(angle), np.sin(angle)
+  return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], np.float32)
+
+
+def test_nsfp_recovers_a_rigid_motion():
+  rng = np.random.default_rng(0)
+  pc1 = rng.uniform(-2, 2, (128, 3)).astype(np.float32)
+  gt = pc1 @ _rotation(0.05).T + [0.3, -0.1, 0.2] - pc1
+  pc2 = (pc1 + gt)[rng.permutation(128)]  # the same points moved, in another order
+  chosen = nsfp.settings("exact", steps=600)
+  flow, info = nsfp.nsfp_flow(pc1, pc2, chosen)
+  assert np.mean(np.linalg.norm(flow - gt, axis=1)) < 0.02  # zero flow is 0.37 m off
+  assert info["finite"] and info["loss_best"] < 0.01 * info["loss_start"]
+
+
+def _numpy_chamfer(a, b, truncate):
+  d = np.sum((a[:, None] - b[None]) ** 2, axis=-1)
+  return np.mean(np.minimum(d.min(1), truncate**2)) + np.mean(np.minimum(d.min(0), truncate**2))
+
+
+def test_early_stopping_stops_and_returns_the_best_loss_flow():
+  rng = np.random.default_rng(1)
+  pc1 = rng.uniform(-1, 1, (64, 3)).astype(np.float32)
+  pc2 = (pc1 + [0.2, 0.0, 0.1]).astype(np.float32)
+  chosen = optimiser.Settings(objective="exact", steps=3000, learning_rate=0.05, patience=20,
+                              min_delta=1e-4, refresh=1)
+  flow, info = optimiser.optimise(jnp.zeros((1, 64, 3)), pc1[None], pc2[None], chosen)
+  steps = int(info["steps"][0])
+  assert bool(info["stopped"][0]) and 20 < steps < 3000
+  # The loss recorded is that of the flow returned (nearest points searched at every step).
+  best = _numpy_chamfer(pc1 + np.asarray(flow[0]), pc2, chosen.truncate)
+  np.testing.assert_allclose(float(info["loss_best"][0]), best, rtol=1e-3, atol=1e-7)
+  assert best < 0.05 * _numpy_chamfer(pc1, pc2, chosen.truncate)  # it optimised
+  # Without early stopping every step runs.
+  _, info = optimiser.optimise(jnp.zeros((1, 64, 3)), pc1[None], pc2[None],
+                               dataclasses.replace(chosen, patience=0, steps=steps + 7))
+  assert int(info["steps"][0]) == steps + 7 and not bool(info["stopped"][0])
+
+
+def test_clusters_and_their_rigid_motions():
+  rng = np.random.default_rng(2)
+  a = rng.uniform(0, 1, (40, 3))
+  b = rng.uniform(0, 1, (30, 3)) + [5.0, 0.0, 0.0]  # far from a: its own cluster
+  pc1 = np.concatenate([a, b]).astype(np.float32)
+  moves = [(_rotation(0.2), np.array([0.5, 0, 0])), (_rotation(-0.1), np.array([0, 0.3, 0]))]
+  flow = np.concatenate([p @ r.T + t - p for p, (r, t) in zip((a, b), moves)]).astype(np.float32)
+  chosen = clusters.Settings(radius=2.0, flow_tolerance=0.5, min_points=4)
+  labels = np.asarray(clusters.clusters(pc1[None], flow[None], chosen)[0])
+  np.testing.assert_array_equal(labels, [0] * 40 + [40] * 30)
+  r, cen, t = (np.asarray(x[0]) for x in clusters.fit(pc1[None], flow[None], labels[None], 4))
+  for label, p, (r_true, t_true) in ((0, a, moves[0]), (40, b, moves[1])):
+    np.testing.assert_allclose(r[label], r_true, atol=1e-4)
+    np.testing.assert_allclose(cen[label], p.mean(0), atol=1e-5)
+    moved = (p - cen[label]) @ r[label].T + cen[label] + t[label]
+    np.testing.assert_allclose(moved, p @ r_true.T + t_true, atol=1e-4)
+  got = rigid.rigid_flow(jnp.asarray(pc1), jnp.asarray(labels), *map(jnp.asarray, (r, cen, t)))
+  np.testing.assert_allclose(np.asarray(got), flow, atol=1e-4)
+  # Rodrigues against the closed form about y.
+  np.testing.assert_allclose(np.asarray(clusters.rodrigues(jnp.asarray([[0, 0.3, 0]]))[0]),
+                             _rotation(0.3), atol=1e-6)
+
+
+_TINY = methods.Optimise(
+  refine=dataclasses.replace(methods.Optimise().refine, steps=30, max_cells=2**15),
+  rigid_steps=20)
+_TINY_NSFP = dataclasses.replace(methods.NSFP, steps=20, max_cells=2**15, width=16, depth=2)
+_ZERO_NETWORK = lambda params, a, b: jnp.zeros_like(a)
+
+
+def _degenerate_pairs():
+  """identical points, a plane, far from the origin, pc2 100x smaller: one batch (one compile)."""
+  rng = np.random.default_rng(3)
+  pc1 = rng.uniform(-1, 1, (4, 48, 3)).astype(np.float32)
+  pc1[0] = 1.0
+  pc1[1, :, 1] = 0.0
+  pc1[2] += 1e5
+  pc2 = pc1 + [0.1, 0.0, 0.05]
+  pc2[3] = pc1[3] / 100.0
+  return pc1, pc2
+
+
+@pytest.mark.parametrize("method, chosen", [("nsfp", _TINY_NSFP), ("optimise", _TINY)])
+def test_degenerate_clouds_give_finite_flows(method, chosen):
+  fn = jax.jit(methods.flow_fn(method, _ZERO_NETWORK, chosen, with_info=True))
+  pc1, pc2 = _degenerate_pairs()
+  flow, info = fn(None, pc1, pc2)
+  assert np.isfinite(np.asarray(flow)).all() and np.asarray(info["finite"]).all()
+  # The centring keeps the centimetres far from the origin: the translation is recovered.
+  assert np.mean(np.linalg.norm(np.asarray(flow[2]) - [0.1, 0.0, 0.05], axis=-1)) < 0.05
+  # Deterministic: the same call gives the same flow.
+  np.testing.assert_array_equal(np.asarray(fn(None, pc1, pc2)[0]), np.asarray(flow))
+  # Fewer points than the neighbourhoods (8) and the clusters' minimum.
+  flow, info = fn(None, pc1[:1, :3], pc2[:1, :3])
+  assert np.isfinite(np.asarray(flow)).all() and np.asarray(info["finite"]).all()
+
+
+def test_settings_reject_bad_values():
+  with pytest.raises(ValueError, match="optimiser model"):
+    optimiser.Settings(model="tree")
+  with pytest.raises(ValueError, match="patience"):
+    optimiser.Settings(patience=-1)
+  with pytest.raises(methods.ConfigError, match="--method"):
+    methods.settings("icp")
+  assert methods.settings("optimise", steps=5).refine.steps == 5
+  assert methods.settings("nsfp").model == "mlp" and methods.settings("network") is None
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+  """The command lines at toy size, started at once and collected."""
+  d = tmp_path_factory.mktemp("methods")
+  rng = np.random.default_rng(5)
+  pc1 = rng.uniform(-2, 2, (120, 3)).astype(np.float32)
+  np.save(d / "pc1.npy", pc1)
+  np.save(d / "pc2.npy", pc1 + [0.2, 0.0, 0.1])
+  np.save(d / "bad.npy", pc1[:, :2])
+  py = [sys.executable]
+  toy = ["--config.eval.num_points=64", "--config.eval.num_iters=2", "--steps", "15"]
+  eval_args = ["evaluate.py", "--dataset", "synthetic_lidar:1", "--split", "val", *toy]
+  cases = {
+    "eval_nsfp": py + eval_args + ["--method", "nsfp", "--json", d / "nsfp.json"],  # (optimise:
+    # the same dispatch, jaxflow.methods, with the network of the predict case)
+    "predict_optimise": py + ["-m", "jaxflow.predict", d / "pc1.npy", d / "pc2.npy", "--out",
+                              d / "p_opt.npy", "--iters", "2", "--steps", "15"],
+    "nsfp": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "pc2.npy", "--out", d / "n.npy",
+                  "--steps", "15"],
+    "nsfp_bad": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "bad.npy", "--out", d / "x.npy"],
+    "nsfp_bad_objective": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "pc2.npy", "--out",
+                                d / "y.npy", "--objective", "fast"],
+  }
+  env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
+         "JAX_PLATFORMS": "cpu"}
+  procs = {k: subprocess.Popen(list(map(str, v)), cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True) for k, v in cases.items()}
+  return d, {k: (p.wait(timeout=300), *p.communicate()) for k, p in procs.items()}
+
+
+def test_methods_run_from_both_command_lines(runs):
+  d, out = runs
+  for case in ("eval_nsfp", "predict_optimise", "nsfp"):
+    assert out[case][0] == 0, (case, out[case][2][-2000:])
+  results = json.loads((d / "nsfp.json").read_text())
+  assert results["method"] == "nsfp" and results["method_settings"]["model"] == "mlp"
+  for key in ("epe", "acc_strict", "acc_relax", "outliers", "angle", "pairs", "ms_per_pair"):
+    assert np.isfinite(results[key])
+  assert results["checkpoint"] is None  # no network loaded
+  for name in ("p_opt", "n"):
+    flow = np.load(d / f"{name}.npy")
+    assert flow.shape == (120, 3) and np.isfinite(flow).all()
+  assert "method optimise" in out["predict_optimise"][2]  # the default method
+  # 15 steps do not let NSFP's early stopping fire: the user is told.
+  assert "did not fire within 15 steps" in out["nsfp"][2]
+
+
+def test_nsfp_command_errors_are_one_line(runs):
+  _, out = runs
+  for case, words in (("nsfp_bad", ["bad.npy", "expected N x 3"]),
+                      ("nsfp_bad_objective", ["--objective", "fast"])):
+    rc, stdout, stderr = out[case]
+    lines = stderr.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("error: "), stderr
+    assert all(w in lines[0] for w in words), lines[0]
