@@ -4,7 +4,7 @@
 - `nsfp`: Neural Scene Flow Prior (Li et al. 2021, the paper's Tables 4 and 7 baseline): NSFP's
   MLP optimised per pair from zero flow, no network, no checkpoint (`optimiser.NSFP`).
 - `optimise`: the network's flow refined per pair by the fast optimiser (distance-grid Chamfer +
-  smoothness, then the piecewise-rigid steps of jaxflow.rigid): the recommended method for real
+  smoothness, then the piecewise-rigid steps of jaxflow.rigid_clusters): the recommended method for real
   data, and predict's default.
 
     fn = flow_fn("optimise", network)   # network: (params, pc1, pc2) -> flow, B x N x 3
@@ -16,7 +16,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflow import clusters, optimiser
+from jaxflow import optimiser, rigid_clusters
 from jaxflow.errors import ConfigError
 
 METHODS = ("network", "nsfp", "optimise")
@@ -29,12 +29,12 @@ NSFP = dataclasses.replace(optimiser.NSFP, objective="grid")
 @dataclasses.dataclass(frozen=True)
 class Optimise:
   """The `optimise` method: `refine` (the network's flow optimised as free vectors); then, for
-  `rigid_steps` > 0, clusters of points that move together (jaxflow.clusters) each get the rigid
-  motion of their flow, optimised against pc2 for `rigid_steps` steps (6 numbers a cluster); then
-  `polish` free-vector steps from that flow (0: none)."""
+  `rigid_steps` > 0, clusters of points that move together (jaxflow.rigid_clusters) each get the
+  rigid motion of their flow, optimised against pc2 for `rigid_steps` steps (6 numbers a cluster);
+  then `polish` free-vector steps from that flow (0: none)."""
   refine: optimiser.Settings = optimiser.Settings(
     model="flow", objective="grid", steps=400, learning_rate=0.05, smoothness=1.0)
-  clusters: clusters.Settings = clusters.Settings()
+  clusters: rigid_clusters.Settings = rigid_clusters.Settings()
   rigid_steps: int = 150
   rigid_learning_rate: float = 0.01
   choose: bool = True  # per cluster, keep the rigid flow only where it fits pc2 better
@@ -65,14 +65,14 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise):
   grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.refine)  # once for every stage
   flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.refine, grids=grids)
   if chosen.rigid_steps:
-    labels = clusters.clusters(pc1_BxNx3, flow, chosen.clusters, chunk=chosen.refine.chunk)
-    motions = clusters.fit(pc1_BxNx3, flow, labels, chosen.clusters.min_points)
+    labels = rigid_clusters.clusters(pc1_BxNx3, flow, chosen.clusters, chunk=chosen.refine.chunk)
+    motions = rigid_clusters.fit(pc1_BxNx3, flow, labels, chosen.clusters.min_points)
     stage = dataclasses.replace(chosen.refine, model="rigid", steps=chosen.rigid_steps,
                                 learning_rate=chosen.rigid_learning_rate, smoothness=0.0)
     fitted = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions), grids)[0]
     if chosen.choose:
-      fitted = clusters.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3, chosen.refine.truncate,
-                            chosen.refine.chunk)
+      fitted = rigid_clusters.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3,
+                                     chosen.refine.truncate, chosen.refine.chunk)
     flow = fitted
   if chosen.polish:
     flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3,

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jaxflow import clusters, objectives
+from jaxflow import objectives, rigid_clusters
 
 MODELS = ("flow", "mlp", "rigid")
 OBJECTIVES = ("exact", "grid")
@@ -103,9 +103,10 @@ def _init_params(settings: Settings, n: int):
 
 
 def _flow(params, init_Nx3, pc1_Nx3, clusters=()):
-  if "rotation" in params:  # clusters: (labels N, R N x 3 x 3, centroid, translation) of clusters.fit
+  # clusters: (labels N, R N x 3 x 3, centroid, translation) of rigid_clusters.fit
+  if "rotation" in params:
     labels_N, r_Nx3x3, cen_Nx3, t_Nx3 = clusters
-    r_Nx3x3 = jnp.einsum("nij,njk->nik", r_Nx3x3, clusters.rodrigues(params["rotation"]))
+    r_Nx3x3 = jnp.einsum("nij,njk->nik", r_Nx3x3, rigid_clusters.rodrigues(params["rotation"]))
     return rigid.rigid_flow(pc1_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3 + params["translation"])
   residual = params["flow"] if "flow" in params else apply_mlp(params["mlp"], pc1_Nx3)
   return init_Nx3 + residual
@@ -220,7 +221,7 @@ def distance_grids(pc1_BxNx3, pc2_BxMx3, settings: Settings):
 def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(), grids=None):
   """(flow B x N x 3 of the lowest loss, info: B-vectors steps, stopped (early stopping fired),
   loss_start, loss_best, finite). Model "rigid" needs `clusters` = (labels, R, centroid,
-  translation) from jaxflow.rigid (`clusters`, `fit`) and does not use `init`. `grids`: those of
+  translation) from jaxflow.rigid_clusters (`clusters`, `fit`) and does not use `init`. `grids`: those of
   `distance_grids` for these clouds and settings (None: built here)."""
   if settings.model == "rigid" and len(clusters) != 4:
     raise ValueError("optimiser model 'rigid' needs clusters = (labels, R, centroid, translation)")

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow import clusters, methods, nsfp, optimiser
+from jaxflow import methods, nsfp, optimiser, rigid_clusters
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -65,10 +65,10 @@ def test_clusters_and_their_rigid_motions():
   pc1 = np.concatenate([a, b]).astype(np.float32)
   moves = [(_rotation(0.2), np.array([0.5, 0, 0])), (_rotation(-0.1), np.array([0, 0.3, 0]))]
   flow = np.concatenate([p @ r.T + t - p for p, (r, t) in zip((a, b), moves)]).astype(np.float32)
-  chosen = clusters.Settings(radius=2.0, flow_tolerance=0.5, min_points=4)
-  labels = np.asarray(clusters.clusters(pc1[None], flow[None], chosen)[0])
+  chosen = rigid_clusters.Settings(radius=2.0, flow_tolerance=0.5, min_points=4)
+  labels = np.asarray(rigid_clusters.clusters(pc1[None], flow[None], chosen)[0])
   np.testing.assert_array_equal(labels, [0] * 40 + [40] * 30)
-  r, cen, t = (np.asarray(x[0]) for x in clusters.fit(pc1[None], flow[None], labels[None], 4))
+  r, cen, t = (np.asarray(x[0]) for x in rigid_clusters.fit(pc1[None], flow[None], labels[None], 4))
   for label, p, (r_true, t_true) in ((0, a, moves[0]), (40, b, moves[1])):
     np.testing.assert_allclose(r[label], r_true, atol=1e-4)
     np.testing.assert_allclose(cen[label], p.mean(0), atol=1e-5)
@@ -77,7 +77,7 @@ def test_clusters_and_their_rigid_motions():
   got = rigid.rigid_flow(jnp.asarray(pc1), jnp.asarray(labels), *map(jnp.asarray, (r, cen, t)))
   np.testing.assert_allclose(np.asarray(got), flow, atol=1e-4)
   # Rodrigues against the closed form about y.
-  np.testing.assert_allclose(np.asarray(clusters.rodrigues(jnp.asarray([[0, 0.3, 0]]))[0]),
+  np.testing.assert_allclose(np.asarray(rigid_clusters.rodrigues(jnp.asarray([[0, 0.3, 0]]))[0]),
                              _rotation(0.3), atol=1e-6)
 
 
