@@ -117,9 +117,13 @@ def test_main_job_is_the_paper_base_with_cpu_overrides():
 
 
 def test_every_paper_config_builds_its_model():
+  models = {}  # the distinct models of the paper configs (stage 2 shares stage 1's)
   for name, (get, _) in PAPER_CONFIGS.items():
-    assert sum(parameter_counts(get().model).values()) > 0, name
-    build_model(get().model, inference=True)
+    models.setdefault(str(dict(get().model)), (name, get().model))
+  assert len(models) == 5  # full, gcl, gcl_rc, PV-RAFT with and without its refinement
+  for name, model in models.values():
+    build_model(model, inference=True)
+    assert sum(parameter_counts(model).values()) > 0, name
 
 
 def test_config_arguments_are_checked():

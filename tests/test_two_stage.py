@@ -5,6 +5,7 @@ stages through train.py as a user types them; the other rows run stage 2 in-proc
 train.py calls) from a stage-1 checkpoint of their own config written without training (training
 stage 1 is the same code for every row and costs a compilation each)."""
 
+import json
 import subprocess
 import sys
 
@@ -56,12 +57,14 @@ def check_stage2(stage1_dir, stage2_dir, refine: str):
   a, b = flat(first.params), flat(second.params)
   backbone = [k for k in b if not k.startswith("refine/")]
   assert backbone and all(np.array_equal(a[k], b[k]) for k in backbone)  # loaded, frozen bitwise
-  assert any(k.startswith("refine/") for k in b)
-  # The refinement trained: its parameters moved off the same config's fresh initialisation.
-  model = training.build_model(config2.model)
-  fresh = flat(training.init_params(model, config2, jax.random.key(config2.seed)))
-  moved = [k for k in b if k.startswith("refine/") and not np.array_equal(b[k], fresh[k])]
-  assert moved
+  refine_keys = [k for k in b if k.startswith("refine/")]
+  assert refine_keys
+  if any(k.startswith("refine/") for k in a):  # stage 1 had an (untrained) refinement
+    assert any(not np.array_equal(a[k], b[k]) for k in refine_keys)
+  # The refinement trained: a finite loss and a gradient (the refinement's alone) at its steps.
+  record = json.loads((stage2_dir / "metrics.jsonl").read_text().splitlines()[-1])
+  assert record["stage"] == 2 and record["step"] == 2
+  assert np.isfinite(record["loss"]) and record["grad_norm"] > 0
 
 
 @pytest.mark.parametrize("family", sorted(THROUGH_TRAIN_PY))
