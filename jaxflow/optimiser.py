@@ -107,7 +107,7 @@ def _flow(params, init_Nx3, pc1_Nx3, clusters=()):
   if "rotation" in params:
     labels_N, r_Nx3x3, cen_Nx3, t_Nx3 = clusters
     r_Nx3x3 = jnp.einsum("nij,njk->nik", r_Nx3x3, rigid_clusters.rodrigues(params["rotation"]))
-    return rigid.rigid_flow(pc1_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3 + params["translation"])
+    return rigid_clusters.rigid_flow(pc1_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3 + params["translation"])
   residual = params["flow"] if "flow" in params else apply_mlp(params["mlp"], pc1_Nx3)
   return init_Nx3 + residual
 

@@ -3,11 +3,19 @@
 import os
 import pathlib
 import sys
+import tempfile
 
+import jax
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED = pathlib.Path(os.environ.get("JAXFLOW_SHARED", ROOT.parent / "shared"))
+
+# Compiled programs are shared by the tests, their subprocesses and both xdist workers through jax's
+# persistent cache (the models of the tests are few; compiling them is most of the suite's time).
+CACHE = os.environ.setdefault(
+  "JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "jaxflow-test-xla-cache"))
+jax.config.update("jax_compilation_cache_dir", CACHE)
 
 # configs/ is imported as a package by the config files and the tests.
 if str(ROOT) not in sys.path:

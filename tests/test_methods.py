@@ -74,7 +74,7 @@ def test_clusters_and_their_rigid_motions():
     np.testing.assert_allclose(cen[label], p.mean(0), atol=1e-5)
     moved = (p - cen[label]) @ r[label].T + cen[label] + t[label]
     np.testing.assert_allclose(moved, p @ r_true.T + t_true, atol=1e-4)
-  got = rigid.rigid_flow(jnp.asarray(pc1), jnp.asarray(labels), *map(jnp.asarray, (r, cen, t)))
+  got = rigid_clusters.rigid_flow(jnp.asarray(pc1), jnp.asarray(labels), *map(jnp.asarray, (r, cen, t)))
   np.testing.assert_allclose(np.asarray(got), flow, atol=1e-4)
   # Rodrigues against the closed form about y.
   np.testing.assert_allclose(np.asarray(rigid_clusters.rodrigues(jnp.asarray([[0, 0.3, 0]]))[0]),
