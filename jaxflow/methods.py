@@ -4,8 +4,8 @@
 - `nsfp`: Neural Scene Flow Prior (Li et al. 2021, the paper's Tables 4 and 7 baseline): NSFP's
   MLP optimised per pair from zero flow, no network, no checkpoint (`optimiser.NSFP`).
 - `optimise`: the network's flow refined per pair by the fast optimiser (distance-grid Chamfer +
-  smoothness, then the piecewise-rigid steps of jaxflow.rigid_clusters): the recommended method for real
-  data, and predict's default.
+  smoothness, then the piecewise-rigid steps of jaxflow.rigid_clusters): the recommended method for
+  real data, and predict's default.
 
     fn = flow_fn("optimise", network)   # network: (params, pc1, pc2) -> flow, B x N x 3
     flow_BxNx3 = jax.jit(fn)(params, pc1_BxNx3, pc2_BxMx3)
