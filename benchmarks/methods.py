@@ -50,7 +50,8 @@ def main():
   rows, results = [], {}
   for method in args.methods.split(","):
     chosen = methods.settings(method, args.nsfp_steps if method == "nsfp" else None)
-    predict = evaluation.model_predict_fn(model, 32, refine, method=method, method_settings=chosen)
+    predict = evaluation.model_predict_fn(model, 32, refine, method=method, method_settings=chosen,
+                                          with_info=method != "network")
     compiled = {}  # one compilation for every dataset (same shapes)
     for name, spec, split, _ in datasets(args.synthetic):
       batches = eval_batches(open_dataset(spec, split), 1, args.num_points, seed=0)

@@ -85,8 +85,11 @@ def _run(predict, args, batches, render_dir=None, compiled=None, total=None, sav
   process's; the sums are added over processes). `compiled` caches the compiled `predict` by input
   shapes (compiled before timing) across calls; `total`: the pairs expected, for the progress bar.
   Batches with ego-motion flow and labels add "three_way" (metrics.ThreeWayAverage); save_dir:
-  every pair's flow (jaxflow.export)."""
+  every pair's flow (jaxflow.export). A `predict` that returns (flow, info) (an optimising method's
+  `with_info`) adds "convergence": the pairs it optimised, those whose flow went non-finite (the
+  starting flow is kept), those whose early stopping fired, and the mean steps."""
   compiled = {} if compiled is None else compiled
+  convergence = np.zeros(4)  # pairs with info, non-finite, early-stopped, steps
   three_way = ThreeWayAverage()
   saver = export.FlowSaver(save_dir) if save_dir is not None else None
   sums = dict.fromkeys(METRICS, 0.0)
@@ -100,11 +103,17 @@ def _run(predict, args, batches, render_dir=None, compiled=None, total=None, sav
       if key not in compiled:
         compiled[key] = predict.lower(*args, pc1, pc2).compile()
       start = time.perf_counter()
-      pred = compiled[key](*args, pc1, pc2).block_until_ready()
+      pred = jax.block_until_ready(compiled[key](*args, pc1, pc2))
       seconds += time.perf_counter() - start
+      valid = np.asarray(batch["pair_valid"], np.float64)
+      if isinstance(pred, tuple):
+        pred, info = pred[0], jax.device_get(pred[1])
+        if info is not None:
+          convergence += [valid.sum(), np.sum(valid * ~np.asarray(info["finite"])),
+                          np.sum(valid * np.asarray(info["stopped"])),
+                          np.sum(valid * np.asarray(info["steps"]))]
       per_pair = jax.device_get(_metrics_fn(pred, jnp.asarray(batch["flow"]),
                                            jnp.asarray(batch["mask"])))
-      valid = np.asarray(batch["pair_valid"], np.float64)
       for k in METRICS:
         sums[k] += float(np.sum(np.asarray(per_pair[k], np.float64) * valid))
       pairs += int(valid.sum())
@@ -114,13 +123,18 @@ def _run(predict, args, batches, render_dir=None, compiled=None, total=None, sav
       bar.update(int(valid.sum()))
       if render_dir is not None:
         _render(render_dir, batch, np.asarray(pred))
-  *totals, pairs, seconds = distributed.sum_over_processes([*sums.values(), pairs, seconds])
+  summed = distributed.sum_over_processes([*sums.values(), pairs, seconds, *convergence])
+  totals, (pairs, seconds), convergence = summed[:len(METRICS)], summed[-6:-4], summed[-4:]
   sums, pairs = dict(zip(METRICS, totals)), int(pairs)
   three_way.reduce(distributed.sum_over_processes)
   if pairs == 0:
     raise ConfigError("the evaluation dataset holds no pairs")
   results = {k: sums[k] / pairs for k in METRICS}
   results.update(pairs=pairs, ms_per_pair=1000.0 * seconds / pairs, **three_way.results())
+  if convergence[0]:
+    results["convergence"] = {"pairs": int(convergence[0]), "non_finite": int(convergence[1]),
+                              "early_stopped": int(convergence[2]),
+                              "mean_steps": convergence[3] / convergence[0]}
   return results
 
 
@@ -136,7 +150,8 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
   test-time optimisation included when `optimise.steps` > 0; `method`: jaxflow.methods);
   save_flows: a folder that receives the flow of every pair (jaxflow.export; the points evaluated:
   sampled unless num_points None)."""
-  predict = model_predict_fn(model, num_iters, refine, optimise, method, method_settings)
+  predict = model_predict_fn(model, num_iters, refine, optimise, method, method_settings,
+                             with_info=method != "network")
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
   results = _run(predict, (distributed.local_copy(params),), batches, render_dir, total=total,
                  save_dir=save_flows)
@@ -285,6 +300,9 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
   print(format_table([(f"{dataset} ({split})", results)]))
   if "three_way" in results:
     print(format_three_way([(f"{dataset} ({split})", results)]))
+  note = methods.evaluation_note(method, results.get("convergence"))
+  if note:
+    print(f"note: {note}", file=sys.stderr)
   if json_path:
     Path(json_path).absolute().parent.mkdir(parents=True, exist_ok=True)
     Path(json_path).write_text(json.dumps(results, indent=2) + "\n")

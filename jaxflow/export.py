@@ -1,5 +1,5 @@
-"""Flows as files other tools read: `save_flow` (--out of predict and jaxflow.nsfp) and
-`FlowSaver` (the flow of every pair, `--save-flows DIR` of predict and evaluate.py).
+"""Flows and clouds as files other tools read: `save_flow` (--out of predict and jaxflow.nsfp),
+`FlowSaver` (the flow of every pair, `--save-flows DIR` of predict and evaluate.py), `write_ply`.
 
 One `.npy` per pair (float32 N x 3, row i the flow of pc1's point i as the model saw it), named by
 the pair: `flow_stem(pair.name)`, the pair's name with every run of characters other than letters,
@@ -80,3 +80,17 @@ class FlowSaver:
     for i, name in enumerate(batch["names"]):
       if batch["pair_valid"][i]:
         self.save(name, pred[i])
+
+
+def write_ply(path, points_Nx3) -> pathlib.Path:
+  """Writes points as a binary little-endian PLY (float x, y, z): readable by read_points, MeshLab,
+  CloudCompare; e.g. write_ply("moved.ply", pc1 + flow)."""
+  points_Nx3 = np.ascontiguousarray(points_Nx3, dtype="<f4")
+  if points_Nx3.ndim != 2 or points_Nx3.shape[1] != 3:
+    raise ValueError(f"write_ply: expected N x 3 points, got shape {points_Nx3.shape}")
+  header = ("ply\nformat binary_little_endian 1.0\ncomment written by jaxflow\n"
+            f"element vertex {len(points_Nx3)}\nproperty float x\nproperty float y\n"
+            "property float z\nend_header\n")
+  path = pathlib.Path(path)
+  path.write_bytes(header.encode("ascii") + points_Nx3.tobytes())
+  return path

@@ -21,9 +21,10 @@ from jaxflow.errors import ConfigError
 
 METHODS = ("network", "nsfp", "optimise")
 NEEDS_NETWORK = ("network", "optimise")
-# The nsfp method: NSFP's published settings with the Chamfer terms read from distance grids (the
-# exact nearest-point search every step costs ~1 s a step at 8192 points on a 2-core CPU).
-NSFP = dataclasses.replace(optimiser.NSFP, objective="grid")
+# The nsfp method: NSFP's published settings, its exact two-way Chamfer (nearest points by k-d tree
+# every step, ~60 ms a step at 8192 points on a 2-core CPU). The one-way distance grid is faster but
+# far less accurate for NSFP on FT3D (benchmarks/METHODS.md).
+NSFP = optimiser.NSFP
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,14 +32,17 @@ class Optimise:
   """The `optimise` method: `refine` (the network's flow optimised as free vectors); then, for
   `rigid_steps` > 0, clusters of points that move together (jaxflow.rigid_clusters) each get the
   rigid motion of their flow, optimised against pc2 for `rigid_steps` steps (6 numbers a cluster);
-  then `polish` free-vector steps from that flow (0: none)."""
+  then `polish`: free-vector steps from that flow on the exact two-way Chamfer (nearest points by
+  k-d tree), which the one-way grid cannot give (steps 0: none)."""
   refine: optimiser.Settings = optimiser.Settings(
     model="flow", objective="grid", steps=400, learning_rate=0.05, smoothness=1.0)
   clusters: rigid_clusters.Settings = rigid_clusters.Settings()
   rigid_steps: int = 150
   rigid_learning_rate: float = 0.01
   choose: bool = True  # per cluster, keep the rigid flow only where it fits pc2 better
-  polish: int = 0
+  # Chosen on the synthetic val pairs (benchmarks/METHODS.md): 200 steps at lr 0.02.
+  polish: optimiser.Settings = optimiser.Settings(
+    model="flow", objective="exact", steps=200, learning_rate=0.02, smoothness=1.0, refresh=5)
 
 
 def settings(method: str, steps: int | None = None):
@@ -55,7 +59,8 @@ def settings(method: str, steps: int | None = None):
   if steps is not None:
     chosen = dataclasses.replace(chosen, refine=dataclasses.replace(chosen.refine, steps=steps),
                                  rigid_steps=min(chosen.rigid_steps, steps),
-                                 polish=min(chosen.polish, steps))
+                                 polish=dataclasses.replace(
+                                   chosen.polish, steps=min(chosen.polish.steps, steps)))
   return chosen
 
 
@@ -74,10 +79,8 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise):
       fitted = rigid_clusters.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3,
                                      chosen.refine.truncate, chosen.refine.chunk)
     flow = fitted
-  if chosen.polish:
-    flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3,
-                              dataclasses.replace(chosen.refine, steps=chosen.polish),
-                              grids=grids)[0]
+  if chosen.polish.steps:
+    flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, chosen.polish)[0]
   return flow, info
 
 
@@ -117,3 +120,18 @@ def convergence_note(method: str, info) -> str | None:
     return (f"{method}: early stopping did not fire within {int(np.max(info['steps']))} steps; "
             "the flow of the lowest loss is returned but may not have converged")
   return None
+
+
+def evaluation_note(method: str, convergence: dict | None) -> str | None:
+  """A line for evaluate.py's user when some pairs' optimisation did not converge."""
+  if not convergence:
+    return None
+  notes = []
+  if convergence["non_finite"]:
+    notes.append(f"{convergence['non_finite']} of {convergence['pairs']} pairs diverged "
+                 "(non-finite flow; their starting flow was kept)")
+  if method == "nsfp" and convergence["early_stopped"] < convergence["pairs"]:
+    running = convergence["pairs"] - convergence["early_stopped"]
+    notes.append(f"early stopping did not fire on {running} of {convergence['pairs']} pairs "
+                 "(their lowest-loss flow was used)")
+  return f"{method}: " + "; ".join(notes) if notes else None

@@ -47,7 +47,7 @@ class Settings:
   max_cells: int = 2**22  # nodes per grid at most (16 MB); cells grow for large extents
   width: int = 128  # model "mlp"
   depth: int = 8  # ReLU layers of the MLP (then a linear one)
-  chunk: int = 2048  # rows of a nearest-point search built at a time (memory ~ chunk x M)
+  chunk: int = 2048  # unused: the k-d tree search needs no row chunks (kept for callers)
   seed: int = 0  # the MLP's initial weights
 
   def __post_init__(self):

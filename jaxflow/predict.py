@@ -20,9 +20,10 @@ size, in the default configs/default.py:eval; 0 means whole clouds; --max-points
 whole, without resampling. A larger one is sampled to `max_points` points without replacement,
 seeded (`--seed`, default 0: the same call gives the same flow); pc1 and pc2 are sampled independently.
 The flow is then mapped back to EVERY point of PC1: an unsampled pc1 point takes the flow of its
-nearest sampled pc1 point (Euclidean; a sampled point keeps its own). With --full the model runs on
-the whole clouds instead, with the correlation and kNN built `corr_chunk` pc1 rows at a time, so
-memory stays linear in the number of points (time grows as N x M).
+nearest sampled pc1 point (Euclidean; a sampled point keeps its own). With --method optimise that
+mapped network flow is then optimised at every point against every PC2 point. With --full the
+model runs on the whole clouds instead, with the correlation and kNN built `corr_chunk` pc1 rows at
+a time, so memory stays linear in the number of points (time grows as N x M).
 
 Raw sweeps (--lidar; `lidar=True, up=..., max_range=...` in Python). The models are trained on
 clouds without ground and within 35 m, as the benchmark loaders cut them. --lidar does that cut on
@@ -47,9 +48,9 @@ then optimises that flow for N steps against the clouds the model saw, with no g
 comes after it.
 
 Method (--method, jaxflow.methods, docs/methods.md): `optimise` (the command's default) refines the
-network's flow per pair against the clouds (fast distance-grid Chamfer, then one rigid motion per
-cluster of points); `network` is the network alone (the Python API's default, the paper's protocol);
-`nsfp` is the NSFP baseline (no checkpoint). --steps N caps the optimisation steps. An optimisation
+network's flow against the whole clouds (distance-grid Chamfer, one rigid motion per cluster of
+points, an exact Chamfer polish); `network` is the network alone (the Python API's default, the
+paper's protocol); `nsfp` is the NSFP baseline (no checkpoint). --steps N caps the optimisation steps. An optimisation
 that did not converge says so in a note on stderr.
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
@@ -72,6 +73,7 @@ from jaxflow import evaluation, export, geometry, ground, methods, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
+from jaxflow.export import write_ply  # noqa: F401  (predict.write_ply, as the docs use it)
 from jaxflow.model import build_model
 
 DEFAULT_MAX_POINTS = 8192  # the paper's evaluation size
@@ -99,13 +101,15 @@ class Predictor:
     """Fewer points than the model's neighbourhood (config.model.knn) are refused."""
     return int(self.config.model.knn)
 
-  def _fn(self, num_iters: int, corr_chunk: int, optimise: test_time.Settings):
-    key = (num_iters, corr_chunk, optimise)
+  def _fn(self, num_iters: int, corr_chunk: int, optimise: test_time.Settings, method=None):
+    method = method or self.method
+    key = (num_iters, corr_chunk, optimise, method)
     if key not in self._fns:
       model = self.model if self.model is None or corr_chunk == self.model.corr_chunk else (
         self.model.clone(corr_chunk=corr_chunk))
-      fn = evaluation.model_predict_fn(model, num_iters, self.refine, optimise, self.method,
-                                       self.method_settings, with_info=True)
+      fn = evaluation.model_predict_fn(model, num_iters, self.refine, optimise, method,
+                                       self.method_settings if method == self.method else None,
+                                       with_info=True)
       self._fns[key] = lambda *args: self._noted(*fn(*args))
     return self._fns[key]
 
@@ -143,12 +147,17 @@ class Predictor:
     idx2 = sample_indices(len(pc2_Mx3), max_points, rng)[0] if len(pc2_Mx3) > max_points else None
     sub1 = pc1_Nx3 if idx1 is None else pc1_Nx3[idx1]
     sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
-    fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0), optimise)
+    every_point = self.method == "optimise"  # the network sees samples, the optimiser every point
+    fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0), optimise,
+                  "network" if every_point else None)
     flow_Sx3 = fn(self.params, sub1[None], sub2[None])[0]
-    if idx1 is None:
-      return np.asarray(flow_Sx3)
-    flow_Nx3 = spread_flow(pc1_Nx3, sub1, flow_Sx3)
-    flow_Nx3[idx1] = np.asarray(flow_Sx3)  # a sampled point keeps its own flow, even at ties
+    flow_Nx3 = np.asarray(flow_Sx3) if idx1 is None else spread_flow(pc1_Nx3, sub1, flow_Sx3)
+    if idx1 is not None:
+      flow_Nx3[idx1] = np.asarray(flow_Sx3)  # a sampled point keeps its own flow, even at ties
+    if every_point:
+      chosen = self.method_settings or methods.settings("optimise")
+      flow, info = _optimise_flow(flow_Nx3[None], pc1_Nx3[None], pc2_Mx3[None], chosen)
+      return np.asarray(self._noted(flow, info)[0])
     return flow_Nx3
 
 
@@ -160,6 +169,9 @@ class Predictor:
     clouds = [_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
     return ground.raw_sweep_flow(lambda a, b: self(a, b, names=kept_names, **kwargs), *clouds,
                                  up=up, max_range=max_range, names=names)
+
+
+_optimise_flow = jax.jit(methods.optimise_flow, static_argnums=3)
 
 
 def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndarray:
@@ -238,20 +250,6 @@ def predict_flow(pc1_Nx3, pc2_Mx3, checkpoint=None, num_iters: int = DEFAULT_ITE
   return predictor(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points, full=full,
                    corr_chunk=corr_chunk, seed=seed, optimise=optimise, lidar=lidar, up=up,
                    max_range=max_range)
-
-
-def write_ply(path, points_Nx3) -> pathlib.Path:
-  """Writes points as a binary little-endian PLY (float x, y, z): readable by read_points, MeshLab,
-  CloudCompare; e.g. write_ply("moved.ply", pc1 + flow)."""
-  points_Nx3 = np.ascontiguousarray(points_Nx3, dtype="<f4")
-  if points_Nx3.ndim != 2 or points_Nx3.shape[1] != 3:
-    raise ValueError(f"write_ply: expected N x 3 points, got shape {points_Nx3.shape}")
-  header = ("ply\nformat binary_little_endian 1.0\ncomment written by jaxflow\n"
-            f"element vertex {len(points_Nx3)}\nproperty float x\nproperty float y\n"
-            "property float z\nend_header\n")
-  path = pathlib.Path(path)
-  path.write_bytes(header.encode("ascii") + points_Nx3.tobytes())
-  return path
 
 
 def read_cloud(path) -> tuple[np.ndarray, str | None]:
@@ -374,7 +372,7 @@ def main(argv):
   how += "; ".join(_used(name, n, max_points, whole) for name, n in zip(("PC1", "PC2"), sizes))
   how += (f"; {num_iters} iterations" if FLAGS.method in methods.NEEDS_NETWORK else "") + (
     f", then {optimise.steps} test-time steps" if optimise.steps else "")
-  how += f"; method {FLAGS.method}"
+  how += f"; method {FLAGS.method}" + (" at every point" if FLAGS.method == "optimise" else "")
   print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points ({how}; {predictor.name})",
         file=sys.stderr)
   ratio = max(len(pc1), len(pc2)) / min(len(pc1), len(pc2))

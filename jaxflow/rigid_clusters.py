@@ -36,7 +36,8 @@ class Settings:
 def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings, chunk: int = 2048):
   """Cluster label of each point (B x N, int32): the smallest point index of its component."""
   k = min(settings.neighbours + 1, pc1_BxNx3.shape[1])
-  nbr_BxNxK = geometry.knn(pc1_BxNx3, pc1_BxNx3, k, chunk=chunk)
+  del chunk  # the k-d tree needs no chunking
+  nbr_BxNxK = objectives.host_knn(pc1_BxNx3, pc1_BxNx3, k)
   near = jnp.sum((geometry.gather(pc1_BxNx3, nbr_BxNxK) - pc1_BxNx3[:, :, None]) ** 2, -1)
   same = jnp.sum((geometry.gather(flow_BxNx3, nbr_BxNxK) - flow_BxNx3[:, :, None]) ** 2, -1)
   linked_BxNxK = (near <= settings.radius**2) & (same <= settings.flow_tolerance**2)

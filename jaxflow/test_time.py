@@ -27,7 +27,7 @@ class Settings:
   neighbours: int = 8
   truncate: float = 2.0  # metres
   refresh: int = 10  # steps between two searches of the nearest points (the search is the cost)
-  chunk: int = 2048  # rows of the nearest-point search built at a time (memory ~ chunk x M)
+  chunk: int = 2048  # unused: the k-d tree search needs no row chunks (kept for configs)
 
   def __post_init__(self):
     # neighbours >= 1: the smoothness term averages over them (none would make it NaN).

@@ -122,7 +122,8 @@ def test_settings_reject_bad_values():
     optimiser.Settings(patience=-1)
   with pytest.raises(methods.ConfigError, match="--method"):
     methods.settings("icp")
-  assert methods.settings("optimise", steps=5).refine.steps == 5
+  capped = methods.settings("optimise", steps=5)
+  assert capped.refine.steps == capped.polish.steps == capped.rigid_steps == 5
   assert methods.settings("nsfp").model == "mlp" and methods.settings("network") is None
 
 
@@ -165,6 +166,10 @@ def test_methods_run_from_both_command_lines(runs):
   for key in ("epe", "acc_strict", "acc_relax", "outliers", "angle", "pairs", "ms_per_pair"):
     assert np.isfinite(results[key])
   assert results["checkpoint"] is None  # no network loaded
+  # 15 steps cannot let early stopping (patience 100) fire: the JSON and stderr say so.
+  assert results["convergence"] == {"pairs": 1, "non_finite": 0, "early_stopped": 0,
+                                    "mean_steps": 15.0}
+  assert "early stopping did not fire on 1 of 1 pairs" in out["eval_nsfp"][2]
   for name in ("p_opt", "n"):
     flow = np.load(d / f"{name}.npy")
     assert flow.shape == (120, 3) and np.isfinite(flow).all()

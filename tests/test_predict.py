@@ -226,6 +226,19 @@ def test_sampling_maps_flow_to_nearest_sampled_point(predictor, files, pair):
   assert flow.shape == (2 * N1, 3) and len(np.unique(flow, axis=0)) <= N1
 
 
+def test_optimise_refines_every_point_of_a_sampled_cloud(workdir, files):
+  big = np.load(files / "big.npy")
+  move = np.float32([0.3, 0.0, -0.2])
+  optimiser = predict.load_predictor(workdir, method="optimise", steps=40)
+  flow = optimiser(big, big + move, num_iters=4, max_points=N1, seed=3)  # the network sees N1
+  network = predict.load_predictor(workdir)(big, big + move, num_iters=4, max_points=N1, seed=3)
+  assert flow.shape == (2 * N1, 3) and np.isfinite(flow).all()
+  # Not the sampled points' flows copied (as for the network): every point was optimised.
+  assert len(np.unique(network, axis=0)) <= N1 < len(np.unique(flow, axis=0))
+  error = lambda f: np.mean(np.linalg.norm(f - move, axis=1))
+  assert error(flow) < 0.5 * error(network)
+
+
 def test_full_clouds_with_chunks_match_unchunked(predictor, pair):
   pc1, pc2, _ = pair
   whole = predictor(pc1, pc2, num_iters=4, full=True, corr_chunk=0)
