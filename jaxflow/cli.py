@@ -11,6 +11,7 @@ traceback. `--print_config` prints the config (overrides applied) with its field
 """
 
 import sys
+import warnings
 from typing import Any, Callable
 
 from absl import app, flags, logging
@@ -34,8 +35,11 @@ def _drop_closed_loop_reports():
   When one array of a checkpoint cannot be read, orbax raises (a CheckpointError here) and closes
   its event loop while tensorstore's reads of the other arrays are still running; each of them then
   reports a RuntimeError into the closed loop as an unraisable exception, a traceback after the
-  one-line error. The failure itself has been raised; these reports add nothing.
+  one-line error, and the coroutines it abandons warn at exit that they were never awaited. The
+  failure itself has been raised; these reports add nothing.
   """
+  warnings.filterwarnings("ignore", message=r"coroutine '.*' was never awaited",
+                          category=RuntimeWarning)
   previous = sys.unraisablehook
   if getattr(previous, "drops_closed_loop_reports", False):
     return  # installed by an earlier call

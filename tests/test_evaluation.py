@@ -172,6 +172,21 @@ def copy_run(workdir, tmp_path):
   return dst, dst / "checkpoints" / str(STEP)
 
 
+def test_cli_silences_the_reports_of_abandoned_reads():
+  """What orbax's abandoned reads leave at exit (a coroutine never awaited, a closed event loop)
+  adds no line after the one-line error (the truncated case below hits it only sometimes)."""
+  code = ("import asyncio, sys\n"
+          "from jaxflow import cli\n"
+          "async def read(): pass\n"
+          "pending = read()\n"
+          "def main():\n"
+          "  raise cli.ConfigError('bad checkpoint')\n"
+          "cli.guard(main)\n")
+  proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True,
+                        timeout=120)
+  assert proc.returncode == 2 and proc.stderr.strip().splitlines() == ["error: bad checkpoint"]
+
+
 # orbax's reads abandoned by a failed restore report into its closed event loop (jaxflow.cli).
 @pytest.mark.filterwarnings("ignore:(?s).*Event loop is closed:pytest.PytestUnraisableExceptionWarning")
 def test_bad_checkpoints_raise_checkpoint_error_naming_path(workdir, tmp_path):
