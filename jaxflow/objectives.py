@@ -39,10 +39,8 @@ def host_knn(query_BxNx3, points_BxMx3, k: int):
                            jax.lax.stop_gradient(points_BxMx3), vmap_method="sequential")
 
 
-def nearest(query_BxNx3, points_BxMx3, chunk: int = 0):
-  """Index B x N x 1 of the nearest point of `points` to each query (a constant of the gradient).
-  `chunk`: kept for callers; the k-d tree needs no chunking."""
-  del chunk
+def nearest(query_BxNx3, points_BxMx3):
+  """Index B x N x 1 of the nearest point of `points` to each query (a constant of the gradient)."""
   return host_knn(query_BxNx3, points_BxMx3, 1)
 
 
@@ -64,15 +62,14 @@ def chamfer_terms(a_BxNx3, b_BxMx3, match, truncate: float):
           + truncated_mean(matched_sq(b_BxMx3, a_BxNx3, b_to_a), truncate))
 
 
-def chamfer(a_BxNx3, b_BxMx3, truncate: float, chunk: int = 0):
+def chamfer(a_BxNx3, b_BxMx3, truncate: float):
   """Truncated two-way Chamfer distance (B) with the nearest points searched now."""
-  match = (nearest(a_BxNx3, b_BxMx3, chunk), nearest(b_BxMx3, a_BxNx3, chunk))
+  match = (nearest(a_BxNx3, b_BxMx3), nearest(b_BxMx3, a_BxNx3))
   return chamfer_terms(a_BxNx3, b_BxMx3, match, truncate)
 
 
-def neighbours(pc1_BxNx3, k: int, chunk: int = 0):
+def neighbours(pc1_BxNx3, k: int):
   """pc1's k nearest other points, B x N x k' (k' = min(k, N - 1); at least the point itself)."""
-  del chunk
   n = pc1_BxNx3.shape[1]
   if n == 1:
     return jnp.zeros((pc1_BxNx3.shape[0], 1, 1), jnp.int32)

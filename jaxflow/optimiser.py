@@ -47,7 +47,6 @@ class Settings:
   max_cells: int = 2**22  # nodes per grid at most (16 MB); cells grow for large extents
   width: int = 128  # model "mlp"
   depth: int = 8  # ReLU layers of the MLP (then a linear one)
-  chunk: int = 2048  # unused: the k-d tree search needs no row chunks (kept for callers)
   seed: int = 0  # the MLP's initial weights
 
   def __post_init__(self):
@@ -57,7 +56,7 @@ class Settings:
       raise ValueError(f"optimiser objective must be one of {', '.join(OBJECTIVES)}, "
                        f"got {self.objective!r}")
     for name, least in (("steps", 0), ("neighbours", 1), ("patience", 0), ("refresh", 1),
-                        ("max_cells", 8), ("width", 1), ("depth", 1), ("chunk", 0)):
+                        ("max_cells", 8), ("width", 1), ("depth", 1)):
       if not isinstance(getattr(self, name), int) or getattr(self, name) < least:
         raise ValueError(f"optimiser {name} must be an integer >= {least}, "
                          f"got {getattr(self, name)!r}")
@@ -137,21 +136,18 @@ def _search(params, pair, settings: Settings):
   if settings.objective == "grid":
     return ()
   init_Nx3, pc1_Nx3, pc2_Mx3, clusters = pair
-  chunk = settings.chunk
   warped = (pc1_Nx3 + _flow(params, init_Nx3, pc1_Nx3, clusters))[None]
-  match = (objectives.nearest(warped, pc2_Mx3[None], chunk),
-           objectives.nearest(pc2_Mx3[None], warped, chunk))
+  match = (objectives.nearest(warped, pc2_Mx3[None]), objectives.nearest(pc2_Mx3[None], warped))
   if "inverse" in params:
     back = warped - apply_mlp(params["inverse"], warped[0])[None]
-    match += (objectives.nearest(back, pc1_Nx3[None], chunk),
-              objectives.nearest(pc1_Nx3[None], back, chunk))
+    match += (objectives.nearest(back, pc1_Nx3[None]), objectives.nearest(pc1_Nx3[None], back))
   return match
 
 
 def _one_pair(pair, grids, settings: Settings):
   init_Nx3, pc1_Nx3, _, clusters = pair
   grids = jax.tree.map(lambda a: a[None], grids)  # the objectives take batches
-  nbr_NxK = (objectives.neighbours(pc1_Nx3[None], settings.neighbours, settings.chunk)[0]
+  nbr_NxK = (objectives.neighbours(pc1_Nx3[None], settings.neighbours)[0]
              if settings.smoothness else jnp.zeros((pc1_Nx3.shape[0], 1), jnp.int32))
   opt = optax.chain(optax.add_decayed_weights(settings.weight_decay),
                     optax.adam(settings.learning_rate))

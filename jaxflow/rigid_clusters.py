@@ -33,10 +33,9 @@ class Settings:
         raise ValueError(f"rigid {name} must be >= 0, got {getattr(self, name)!r}")
 
 
-def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings, chunk: int = 2048):
+def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings):
   """Cluster label of each point (B x N, int32): the smallest point index of its component."""
   k = min(settings.neighbours + 1, pc1_BxNx3.shape[1])
-  del chunk  # the k-d tree needs no chunking
   nbr_BxNxK = objectives.host_knn(pc1_BxNx3, pc1_BxNx3, k)
   near = jnp.sum((geometry.gather(pc1_BxNx3, nbr_BxNxK) - pc1_BxNx3[:, :, None]) ** 2, -1)
   same = jnp.sum((geometry.gather(flow_BxNx3, nbr_BxNxK) - flow_BxNx3[:, :, None]) ** 2, -1)
@@ -107,13 +106,13 @@ def rigid_flow(p_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3):
   return moved + cen_Nx3[labels_N] + t_Nx3[labels_N] - p_Nx3
 
 
-def choose(labels_BxN, flows, pc1_BxNx3, pc2_BxMx3, truncate: float, chunk: int = 2048):
+def choose(labels_BxN, flows, pc1_BxNx3, pc2_BxMx3, truncate: float):
   """Per cluster, the candidate flow (of `flows`, each B x N x 3) whose warped points lie nearest
   pc2 on average (truncated squared distance to the nearest pc2 point); ties go to the first."""
   costs = []
   for flow in flows:
     warped = pc1_BxNx3 + flow
-    sq_BxN = objectives.matched_sq(warped, pc2_BxMx3, objectives.nearest(warped, pc2_BxMx3, chunk))
+    sq_BxN = objectives.matched_sq(warped, pc2_BxMx3, objectives.nearest(warped, pc2_BxMx3))
     per = jax.vmap(lambda c, lab: jax.ops.segment_sum(c, lab, num_segments=c.shape[0]))
     costs.append(per(jnp.minimum(sq_BxN, truncate**2), labels_BxN))
   best_BxN = jnp.argmin(jnp.stack(costs), axis=0)  # per cluster slot

@@ -27,7 +27,7 @@ class Settings:
   neighbours: int = 8
   truncate: float = 2.0  # metres
   refresh: int = 10  # steps between two searches of the nearest points (the search is the cost)
-  chunk: int = 2048  # unused: the k-d tree search needs no row chunks (kept for configs)
+  chunk: int = 2048  # unused since the k-d tree search; accepted so older configs still load
 
   def __post_init__(self):
     # neighbours >= 1: the smoothness term averages over them (none would make it NaN).
@@ -54,11 +54,11 @@ def settings_from_config(config_eval) -> Settings:
     raise ConfigError(f"config.eval.test_time: {e}") from None
 
 
-def correspondences(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, chunk: int = 0):
+def correspondences(flow_BxNx3, pc1_BxNx3, pc2_BxMx3):
   """Indices of the nearest pc2 point of each warped pc1 point (B x N x 1) and of the nearest warped
   point of each pc2 point (B x M x 1), for the flow given."""
   warped = pc1_BxNx3 + flow_BxNx3
-  return objectives.nearest(warped, pc2_BxMx3, chunk), objectives.nearest(pc2_BxMx3, warped, chunk)
+  return objectives.nearest(warped, pc2_BxMx3), objectives.nearest(pc2_BxMx3, warped)
 
 
 def objective(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, nbr_BxNxK, match, settings: Settings):
@@ -73,7 +73,7 @@ def optimiser_settings(settings: Settings) -> optimiser.Settings:
   return optimiser.Settings(
     model="flow", objective="exact", steps=settings.steps, learning_rate=settings.learning_rate,
     smoothness=settings.smoothness, neighbours=settings.neighbours, truncate=settings.truncate,
-    refresh=settings.refresh, chunk=settings.chunk)
+    refresh=settings.refresh)
 
 
 @functools.partial(jax.jit, static_argnames="settings")
@@ -82,9 +82,8 @@ def optimise_flow(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings):
   pair on its own; the nearest points searched again every `settings.refresh` steps); returns
   (flow B x N x 3, objective before and after, B each, with the nearest points of the flow)."""
   flow, _ = optimiser.optimise(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, optimiser_settings(settings))
-  nbr = objectives.neighbours(pc1_BxNx3, settings.neighbours, settings.chunk)
-  search = functools.partial(correspondences, pc1_BxNx3=pc1_BxNx3, pc2_BxMx3=pc2_BxMx3,
-                             chunk=settings.chunk)
+  nbr = objectives.neighbours(pc1_BxNx3, settings.neighbours)
+  search = functools.partial(correspondences, pc1_BxNx3=pc1_BxNx3, pc2_BxMx3=pc2_BxMx3)
   before = objective(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, nbr, search(flow_BxNx3), settings)
   after = objective(flow, pc1_BxNx3, pc2_BxMx3, nbr, search(flow), settings)
   return flow, before, after

@@ -30,10 +30,10 @@ def test_objective_matches_a_numpy_loop():
   pc1 = rng.uniform(-2, 2, (40, 3)).astype(np.float32)
   pc2 = (pc1[:35] + rng.normal(0, 0.3, (35, 3))).astype(np.float32)
   flow = rng.normal(0, 0.5, (40, 3)).astype(np.float32)
-  settings = test_time.Settings(steps=1, smoothness=0.7, neighbours=5, truncate=0.6, chunk=16)
+  settings = test_time.Settings(steps=1, smoothness=0.7, neighbours=5, truncate=0.6)
   args = jnp.asarray(flow[None]), jnp.asarray(pc1[None]), jnp.asarray(pc2[None])
   nbr = geometry.knn(args[1], args[1], settings.neighbours + 1)[:, :, 1:]
-  match = test_time.correspondences(*args, chunk=settings.chunk)
+  match = test_time.correspondences(*args)
   got = test_time.objective(*args, nbr, match, settings)
   expected = numpy_objective(flow, pc1, pc2, 5, 0.7, 0.6)
   assert got.shape == (1,)
@@ -83,7 +83,11 @@ def test_settings_from_config():
   eval_config = default.get_config("eval").eval
   # The config lists every field, with the dataclass's defaults: off.
   assert test_time.settings_from_config(eval_config) == test_time.Settings()
-  assert set(eval_config.test_time) == {f.name for f in dataclasses.fields(test_time.Settings)}
+  # Every field but `chunk`, unused since the k-d tree search; older configs that set it still load.
+  assert set(eval_config.test_time) == {f.name for f in dataclasses.fields(test_time.Settings)} - {
+    "chunk"}
+  older = ml_collections.ConfigDict({"test_time": {**eval_config.test_time.to_dict(), "chunk": 64}})
+  assert test_time.settings_from_config(older).chunk == 64
   assert test_time.settings_from_config(ml_collections.ConfigDict({"num_points": 8})).steps == 0
   eval_config.test_time.steps = 30
   assert test_time.settings_from_config(eval_config).steps == 30

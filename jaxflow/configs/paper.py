@@ -115,8 +115,7 @@ def get_config(arg: str = "") -> ml_collections.ConfigDict:
   # smoothness, Adam, no ground truth). Off (steps 0) in the paper's protocol; opt in with
   # --config.eval.test_time.steps=N (MODEL_CARD.md measures it on the shipped checkpoint).
   config.eval.test_time = ml_collections.ConfigDict(dict(
-    steps=0, learning_rate=0.01, smoothness=3.0, neighbours=8, truncate=2.0, refresh=10,
-    chunk=2048))
+    steps=0, learning_rate=0.01, smoothness=3.0, neighbours=8, truncate=2.0, refresh=10))
   if arg == "stage2":
     to_stage2(config)
   return config
