@@ -50,8 +50,8 @@ comes after it.
 Method (--method, jaxflow.methods, docs/methods.md): `optimise` (the command's default) refines the
 network's flow against the whole clouds (distance-grid Chamfer, one rigid motion per cluster of
 points, an exact Chamfer polish); `network` is the network alone (the Python API's default, the
-paper's protocol); `nsfp` is the NSFP baseline (no checkpoint). --steps N caps the optimisation steps. An optimisation
-that did not converge says so in a note on stderr.
+paper's protocol); `nsfp` is the NSFP baseline (no checkpoint). --steps N caps the optimisation
+steps. An optimisation that did not converge says so in a note on stderr.
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
 than the model's neighbourhood config.model.knn) prints one line naming the file and the problem and
@@ -150,10 +150,10 @@ class Predictor:
     every_point = self.method == "optimise"  # the network sees samples, the optimiser every point
     fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0), optimise,
                   "network" if every_point else None)
-    flow_Sx3 = fn(self.params, sub1[None], sub2[None])[0]
-    flow_Nx3 = np.asarray(flow_Sx3) if idx1 is None else spread_flow(pc1_Nx3, sub1, flow_Sx3)
+    flow_Sx3 = np.asarray(fn(self.params, sub1[None], sub2[None])[0])
+    flow_Nx3 = flow_Sx3 if idx1 is None else spread_flow(pc1_Nx3, sub1, flow_Sx3)
     if idx1 is not None:
-      flow_Nx3[idx1] = np.asarray(flow_Sx3)  # a sampled point keeps its own flow, even at ties
+      flow_Nx3[idx1] = flow_Sx3  # a sampled point keeps its own flow, even at ties
     if every_point:
       chosen = self.method_settings or methods.settings("optimise")
       flow, info = _optimise_flow(flow_Nx3[None], pc1_Nx3[None], pc2_Mx3[None], chosen)

@@ -175,8 +175,7 @@ def copy_run(workdir, tmp_path):
 def test_cli_silences_the_reports_of_abandoned_reads():
   """What orbax's abandoned reads leave at exit (a coroutine never awaited, a closed event loop)
   adds no line after the one-line error (the truncated case below hits it only sometimes)."""
-  code = ("import asyncio, sys\n"
-          "from jaxflow import cli\n"
+  code = ("from jaxflow import cli\n"
           "async def read(): pass\n"
           "pending = read()\n"
           "def main():\n"
