@@ -24,7 +24,7 @@ import numpy as np
 
 from tqdm import tqdm
 
-from jaxflow import checkpointing, distributed, export, methods, model_fields, test_time
+from jaxflow import checkpointing, distributed, export, methods, model_fields, tables, test_time
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.metrics import METRICS, ThreeWayAverage, format_three_way, per_pair_metrics
@@ -224,18 +224,10 @@ def _render(render_dir, batch, pred_BxNx3):
 def format_table(rows) -> str:
   """rows: (dataset name, results) -> the layout of the paper's Tables 2-3."""
   header = ("Dataset", "EPE(m)", "AccS(%)", "AccR(%)", "Outliers(%)", "θε(rad)", "pairs", "ms/pair")
-  lines = [header]
-  for name, r in rows:
-    lines.append((
-      name, f"{r['epe']:.4f}", f"{r['acc_strict']:.2f}", f"{r['acc_relax']:.2f}",
-      f"{r['outliers']:.2f}", f"{r['angle']:.4f}", str(r["pairs"]), f"{r['ms_per_pair']:.1f}",
-    ))
-  widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
-  fmt = lambda line: "| " + " | ".join(
-    c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(line, widths))
-  ) + " |"
-  rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
-  return "\n".join([fmt(lines[0]), rule] + [fmt(line) for line in lines[1:]])
+  return tables.markdown_table(header, [(
+    name, f"{r['epe']:.4f}", f"{r['acc_strict']:.2f}", f"{r['acc_relax']:.2f}",
+    f"{r['outliers']:.2f}", f"{r['angle']:.4f}", str(r["pairs"]), f"{r['ms_per_pair']:.1f}",
+  ) for name, r in rows])
 
 
 def load_model(checkpoint=None, config: ml_collections.ConfigDict | None = None, model_fields=()):

@@ -12,6 +12,8 @@ A pair with no valid point gets NaN: it has no defined error.
 import jax.numpy as jnp
 import numpy as np
 
+from jaxflow import tables
+
 METRICS = ("epe", "acc_strict", "acc_relax", "outliers", "angle")
 
 
@@ -118,10 +120,5 @@ class ThreeWayAverage:
 def format_three_way(rows) -> str:
   """rows: (name, results with "three_way") -> a table of the three-way EPE (m)."""
   header = ("Dataset", "EPE FD", "EPE FS", "EPE BS", "three-way", "pairs")
-  lines = [header] + [(name, *(f"{r['three_way'][k]:.4f}" for k in THREE_WAY),
-                       str(r["three_way"]["pairs"])) for name, r in rows]
-  widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
-  fmt = lambda line: "| " + " | ".join(c.ljust(w) if i == 0 else c.rjust(w)
-                                       for i, (c, w) in enumerate(zip(line, widths))) + " |"
-  rule = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
-  return "\n".join([fmt(lines[0]), rule] + [fmt(line) for line in lines[1:]])
+  return tables.markdown_table(header, [(name, *(f"{r['three_way'][k]:.4f}" for k in THREE_WAY),
+                                         str(r["three_way"]["pairs"])) for name, r in rows])
