@@ -31,9 +31,12 @@ from jaxflow import train_state
 from jaxflow.errors import CheckpointError
 from jaxflow.model import build_model
 # Model fields added after checkpoints were written without them, and the value they had then.
-from jaxflow.model_fields import ADDED_MODEL_FIELDS
+from jaxflow.model_fields import ADDED_MODEL_FIELDS, RUNTIME_MODEL_FIELDS
 
 ITEMS = ("state", "config")
+# The shipped checkpoint (found from the package, not the working directory): the default of
+# evaluate.py and predict.
+SHIPPED_CHECKPOINT = Path(__file__).absolute().parent / "checkpoints" / "jaxflow_synthetic"
 _STEP_METADATA = "_CHECKPOINT_METADATA"  # written by orbax into every finalised step folder
 
 
@@ -259,3 +262,34 @@ def save_params(workdir, params, config: ml_collections.ConfigDict, note: str = 
   if note:
     (workdir / "NOTE.txt").write_text(note + "\n")
   return workdir
+
+
+def load_for_inference(checkpoint=None, config: ml_collections.ConfigDict | None = None,
+                       model_fields=()):
+  """(model, params, stored config, step, refine) of a checkpoint (None: the shipped one), the
+  model built for inference from the checkpoint's stored config.
+
+  `model_fields` names the fields of `config.model` the user asked for: one that contradicts the
+  checkpoint is a CheckpointError, except RUNTIME_MODEL_FIELDS (jaxflow.model_fields), which change
+  no parameter and are taken from `config`. `refine`: the checkpoint's refinement was trained
+  (stage 2), so the refined flow is the output.
+  """
+  if checkpoint is None:
+    if not SHIPPED_CHECKPOINT.exists():
+      raise CheckpointError(f"no checkpoint given and no shipped checkpoint at {SHIPPED_CHECKPOINT}")
+    checkpoint = SHIPPED_CHECKPOINT
+  state, saved, step = restore_checkpoint(checkpoint)
+  if config is not None:
+    runtime = [k for k in model_fields if k in RUNTIME_MODEL_FIELDS]
+    checked = [k for k in model_fields if k not in RUNTIME_MODEL_FIELDS]
+    diffs = model_differences(config, saved, fields=checked)
+    if diffs:
+      raise CheckpointError(
+        f"{checkpoint}: the config's model contradicts the checkpoint's ({'; '.join(diffs)}, "
+        "config != checkpoint); the model comes from the checkpoint: drop those model fields"
+      )
+    with saved.unlocked():
+      for k in runtime:
+        saved.model[k] = config.model[k]
+  refine = saved.train.stage == 2 and saved.model.refine != "none"
+  return build_model(saved.model, inference=True), state.params, saved, step, refine

@@ -8,10 +8,17 @@
 errors, a config file that does not load and a `--config.FIELD` that names no field print
 `error: <message>` and exit with 2, without a traceback; anything else is a bug and keeps its
 traceback. `--print_config` prints the config (overrides applied) with its fields' comments.
+`--help` (`-h`) prints the tool's description and flags and exits with 0 (also into a closed pipe,
+`--help | head`). Flags are spelled with underscores (absl's convention); the old hyphenated
+spellings and renamed flags are refused with the new name (`RENAMED`).
+
+The options predict and evaluate.py share mean the same in both (`define_run_flags`).
 """
 
+import os
 import sys
 import warnings
+from pathlib import Path
 from typing import Any, Callable
 
 from absl import app, flags, logging
@@ -21,6 +28,13 @@ from jaxflow import configfile
 from jaxflow.errors import ConfigError, JaxflowError
 
 EXIT_USER_ERROR = 2
+# The settings evaluate.py and predict use when no --config is given (8192 points, 32 iterations).
+EVAL_CONFIG = f"{Path(__file__).absolute().parent / 'configs' / 'default.py'}:eval"
+# Old spellings -> the flag that replaced them (every tool refuses the old one, naming the new).
+RENAMED = {"save-flows": "save_flows", "max-points": "max_points", "corr-chunk": "corr_chunk",
+           "max-range": "max_range", "num-processes": "num_processes",
+           "process-id": "process_id", "print-config": "print_config",
+           "config.eval.test_time": "--method optimise (config.eval.test_time was removed)"}
 
 
 def fail(message: str):
@@ -62,6 +76,107 @@ def guard(main: Callable[..., Any], *args, **kwargs):
     fail(str(e))
 
 
+def _write_and_exit(text: str):
+  """Prints `text` to stdout and exits with 0; a reader that closed the pipe (`| head`) is fine."""
+  try:
+    sys.stdout.write(text)
+    sys.stdout.flush()
+  except BrokenPipeError:
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no error at exit's flush
+  sys.exit(0)
+
+
+def check_renamed(argv: list[str], renamed: dict[str, str]):
+  """fail() naming the new flag when argv spells a renamed or hyphenated one."""
+  for arg in argv[1:]:
+    if arg == "--":
+      return
+    name = arg.lstrip("-").split("=", 1)[0]
+    if not arg.startswith("--"):
+      continue
+    for old, new in renamed.items():
+      if name == old or name.startswith(old + "."):
+        new = new if new.startswith("--") else "--" + new
+        fail(f"--{name} is now {new}")
+
+
+def requested_model_fields(config_flag) -> list[str]:
+  """The `config.model` fields a user asked for on a command line (`config_flag`: the absl flag of
+  a config file): those given as `--config.model.FIELD=...` and, with an explicit config file, every
+  field of its model except the runtime ones, which stay the checkpoint's unless given."""
+  from jaxflow.model_fields import RUNTIME_MODEL_FIELDS  # pylint: disable=import-outside-toplevel
+
+  given = {k.split(".", 1)[1] for k in config_flags.get_override_values(config_flag)
+           if k.startswith("model.")}
+  if config_flag.present:
+    given |= {k for k in config_flag.value.model.keys() if k not in RUNTIME_MODEL_FIELDS}
+  return sorted(given)
+
+
+def define_run_flags(default_method: str):
+  """The flags predict and evaluate.py share, with one meaning in both: --method, --steps,
+  --objective, --iters, --max_points, --full, --corr_chunk, --seed, --save_flows."""
+  from jaxflow import methods  # pylint: disable=import-outside-toplevel
+
+  flags.DEFINE_enum("method", default_method, list(methods.METHODS), "network: the network alone "
+                    "(the paper's protocol); optimise: the network's flow refined per pair; nsfp: "
+                    f"the NSFP baseline, no checkpoint (docs/methods.md). Default {default_method}.")
+  flags.DEFINE_integer("steps", None, "Cap the optimisation steps of nsfp / optimise.")
+  flags.DEFINE_enum("objective", None, ["exact", "grid"], "--method nsfp: NSFP's objective, exact "
+                    "(default: two-way Chamfer, k-d tree every step) or grid (one-way distance "
+                    "grids: faster, less accurate).")
+  flags.DEFINE_integer("iters", None, "Flow iterations of the network (default: "
+                       "config.eval.num_iters, 32).")
+  flags.DEFINE_integer("max_points", None, "Clouds above this size are sampled to it (default: "
+                       "config.eval.num_points, 8192; 0: whole clouds).")
+  flags.DEFINE_bool("full", False, "Whole clouds (--max_points 0), the correlation and kNN built "
+                    "--corr_chunk rows at a time (memory linear in the points).")
+  flags.DEFINE_integer("corr_chunk", None, "pc1 rows of the correlation and kNN built at a time "
+                       "(config.model.corr_chunk; default: the checkpoint's, 2048 with --full; "
+                       "0: all at once).")
+  flags.DEFINE_integer("seed", None, "Seed of the point sampling (default: config.eval.seed, 0).")
+  flags.DEFINE_string("save_flows", None, "Write the flow of every pair into this folder, one "
+                      "NAME.npy per pair, NAME made from the pair (jaxflow.export).")
+
+
+def run_settings(config):
+  """config with the shared flags applied (config.eval.num_iters / num_points / seed,
+  config.model.corr_chunk), and the model fields asked for (requested_model_fields)."""
+  given = flags.FLAGS
+  for name in ("iters", "max_points", "steps", "corr_chunk", "seed"):
+    if given[name].value is not None and given[name].value < 0:
+      raise ConfigError(f"--{name} must be >= 0, got {given[name].value}")
+  if given.iters == 0:
+    raise ConfigError("--iters must be >= 1, got 0")
+  if given.full and given.max_points:
+    raise ConfigError(f"--full uses whole clouds: drop --max_points {given.max_points}")
+  config = config.copy_and_resolve_references()
+  model_fields = requested_model_fields(given["config"])
+  with config.unlocked():
+    if given.iters is not None:
+      config.eval.num_iters = given.iters
+    if given.max_points is not None:
+      config.eval.num_points = given.max_points
+    if given.full:
+      config.eval.num_points = 0
+    if given.seed is not None:
+      config.eval.seed = given.seed
+    chunk = given.corr_chunk
+    if chunk is None and not config.eval.num_points and (given.full or given.max_points == 0):
+      chunk = 2048
+    if chunk is not None:
+      config.model.corr_chunk = chunk
+      model_fields = sorted({*model_fields, "corr_chunk"})
+  return config, model_fields
+
+
+def _print_help(description: str | None, full: bool):
+  doc = (description or "").strip()
+  flags_help = flags.FLAGS.get_help() if full else flags.FLAGS.main_module_help()
+  _write_and_exit(f"{doc}\n\nFlags ({'all' if full else '--helpfull: all of them'}):\n"
+                  f"{flags_help}\n")
+
+
 def _parse_flags(argv: list[str], config_names=()) -> list[str]:
   try:
     argv = flags.FLAGS(argv)
@@ -70,34 +185,43 @@ def _parse_flags(argv: list[str], config_names=()) -> list[str]:
   if not flags.FLAGS["verbosity"].present:  # orbax and jax log every step of a save at INFO
     logging.set_verbosity(logging.WARNING)
   if flags.FLAGS.print_config:
+    text = []
     for name in config_names:
       path = config_flags.get_config_filename(flags.FLAGS[name])
-      print(configfile.describe(flags.FLAGS[name].value, path.split(":")[0], name))
-    sys.exit(0)
+      text.append(configfile.describe(flags.FLAGS[name].value, path.split(":")[0], name) + "\n")
+    _write_and_exit("".join(text))
   return argv
 
 
 def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = None,
-        config_files: dict[str, str | None] | None = None):
+        config_files: dict[str, str | None] | None = None, renamed: dict[str, str] | None = None,
+        description: str | None = None):
   """absl's `app.run(main)` with `guard`; flag and config errors also become one line and exit 2.
 
   `config_files` maps each config-file flag that `define_flags` defines to its default file (or
   None): the file and every `--NAME.FIELD` of the command line are checked before absl sees them
   (ml_collections loads a default file, overrides applied, as soon as its flag is defined). --help
-  lists the flags of main's module, also when it runs as a console script.
+  shows main's module docstring and the flags `define_flags` defines (exit 0); `renamed`: more old
+  flag names -> new ones than RENAMED.
   """
   config_files = config_files or {}
+  check_renamed(sys.argv, {**RENAMED, **(renamed or {})})
   try:
     for name, default in config_files.items():
       sys.argv = configfile.check_argv(sys.argv, name, default)
   except ConfigError as e:
     fail(str(e))
+  before = set(flags.FLAGS)
   if define_flags is not None:
     define_flags()
   flags.DEFINE_bool("print_config", False, "Print the config (with the overrides given) field by "
                     "field, with each field's comment, and exit.")
-  for module in (main.__module__, __name__):  # absl's --help shows sys.argv[0]'s flags
-    for flag in flags.FLAGS.get_flags_for_module(module):
-      flags.FLAGS.register_key_flag_for_module(sys.argv[0], flag)
+  for name in sorted(set(flags.FLAGS) - before):  # --help shows sys.argv[0]'s key flags
+    if "." not in name:  # the config's fields: --print_config lists them
+      flags.FLAGS.register_key_flag_for_module(sys.argv[0], flags.FLAGS[name])
+  help_asked = [a for a in sys.argv[1:] if a in ("--help", "-h", "--helpshort", "-?", "--helpfull")]
+  if help_asked:
+    _print_help(description or sys.modules[main.__module__].__doc__,
+                full=help_asked[0] == "--helpfull")
   app.run(lambda argv: guard(main, argv),
           flags_parser=lambda argv: _parse_flags(argv, list(config_files)))

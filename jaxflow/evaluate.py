@@ -1,21 +1,28 @@
-r"""Evaluates a checkpoint on a dataset: the paper's table (EPE, AccS, AccR, outliers, angle).
+r"""Evaluates a method on a dataset (jaxflow-evaluate, evaluate.py): the paper's table (EPE, AccS,
+AccR, outliers, angle), pairs and ms a pair.
 
     python -m jaxflow.evaluate --checkpoint runs/default --dataset synthetic_lidar:64 --split test
     python -m jaxflow.evaluate --config configs/kitti_eval.py --checkpoint runs/ft3d_stage2 \
         --dataset kitti:data/KITTI_processed_occ_final --json kitti.json
+    python -m jaxflow.evaluate --dataset synthetic_lidar:8 --method optimise --steps 100
 
-(`jaxflow-evaluate` and evaluate.py are the same command.) The model comes from the checkpoint
-(workdir, checkpoints folder or step folder; default: the shipped
-jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192 points, 32
-iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; --dataset and --split
-default to config.eval.dataset and config.eval.split. A dataset with ego-motion flow and labels
-(opensf:DIR) also gets the three-way EPE (FD, FS, BS and their mean) in the table and the JSON;
---save-flows DIR writes the flow of every pair (one .npy per pair, named by the pair).
---method nsfp|optimise evaluates the per-pair optimisation methods instead of the network alone
-(docs/methods.md).
+The model comes from the checkpoint (workdir, checkpoints folder or step folder; default: the
+shipped jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192
+points, 32 iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; the
+flags shared with predict say the same in both tools (--iters, --max_points, --full, --corr_chunk,
+--seed: config.eval.num_iters / num_points / seed, config.model.corr_chunk). --dataset and --split
+default to config.eval.dataset and config.eval.split. --method (jaxflow.methods) is `network` (the
+paper's protocol) by default; optimise and nsfp are the per-pair optimisation methods
+(docs/methods.md; predict's default is optimise). A dataset with ego-motion flow and labels
+(opensf:DIR) also gets the three-way EPE (FD, FS, BS and their mean) in the table and the JSON.
+--save_flows DIR writes the flow of every pair (one .npy per pair, named by the pair),
+--render_dir DIR the Fig. 2 view of every pair (predict's --render FILE: one pair). Many processes:
+--coordinator, --num_processes, --process_id (jaxflow.distributed).
 """
 
-from jaxflow import cli, distributed, evaluation
+import functools
+
+from jaxflow import cli, distributed, evaluation, export, inference, reporting
 
 
 def _define_flags():
@@ -24,20 +31,16 @@ def _define_flags():
 
   distributed.define_flags()
   config_flags.DEFINE_config_file(
-    "config", evaluation.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True)
-  flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder.")
+    "config", cli.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True)
+  flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "
+                      "shipped jaxflow/checkpoints/jaxflow_synthetic/).")
   flags.DEFINE_string("dataset", None, "FORMAT:ROOT, e.g. kitti:data/KITTI_processed_occ_final "
                       "(default: config.eval.dataset).")
   flags.DEFINE_string("split", None, "Dataset split (default: config.eval.split).")
   flags.DEFINE_string("json", None, "Write the results here as JSON.")
-  flags.DEFINE_string("render", None, "Render every pair into this folder (jaxflow.viz).")
-  flags.DEFINE_string("save-flows", None, "Write the flow of every pair into this folder, one "
-                      "NAME.npy per pair (jaxflow.export; the evaluated points: with "
-                      "--config.eval.num_points=0 every point of pc1).")
-  flags.DEFINE_enum("method", "network", ["network", "nsfp", "optimise"],
-                    "network: the paper's protocol; nsfp: the NSFP baseline (no checkpoint); "
-                    "optimise: the network's flow refined per pair (docs/methods.md).")
-  flags.DEFINE_integer("steps", None, "Cap the optimisation steps of nsfp / optimise.")
+  flags.DEFINE_string("render_dir", None, "Render every pair into this folder as NAME.png "
+                      "(jaxflow.viz).")
+  cli.define_run_flags("network")
 
 
 def main(argv):
@@ -47,15 +50,22 @@ def main(argv):
   if len(argv) > 1:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   distributed.initialize_from_flags()
-  model_fields = evaluation.requested_model_fields(FLAGS["config"])
-  evaluation.evaluate_checkpoint(FLAGS.checkpoint, FLAGS.config, FLAGS.dataset, FLAGS.split,
-                                 model_fields, FLAGS.json, FLAGS.render,
-                                 FLAGS["save-flows"].value, FLAGS.method, FLAGS.steps)
+  config, model_fields = cli.run_settings(FLAGS.config)
+  chosen = inference.method_settings(FLAGS.method, FLAGS.steps, FLAGS.objective)
+  on_batch = []
+  if FLAGS.save_flows:
+    on_batch.append(export.FlowSaver(FLAGS.save_flows).add)
+  if FLAGS.render_dir:
+    on_batch.append(functools.partial(reporting.render_batch, FLAGS.render_dir))
+  results = evaluation.evaluate_checkpoint(FLAGS.checkpoint, config, FLAGS.dataset, FLAGS.split,
+                                           model_fields, FLAGS.method, chosen, on_batch)
+  if distributed.is_primary():
+    reporting.report(results, FLAGS.json)
 
 
 def run():
   """The console script `jaxflow-evaluate`."""
-  cli.run(main, _define_flags, {"config": evaluation.EVAL_CONFIG})
+  cli.run(main, _define_flags, {"config": cli.EVAL_CONFIG}, {"render": "render_dir"})
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ from jaxflow import geometry
 from jaxflow.correlation import VOXEL_CELLS, PointVoxelCorrelation, truncated_correlation
 from jaxflow.encoder import GraphEncoder, SetConvEncoder
 from jaxflow.layers import lax_precision
-from jaxflow.model_fields import PARAMETER_FREE_FIELDS  # noqa: F401 (re-exported)
 from jaxflow.refine import GraphRefinement, SetConvRefinement
 from jaxflow.update import UpdateBlock
 

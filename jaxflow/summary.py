@@ -6,12 +6,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-from absl import app
-from ml_collections import config_flags
-
 from jaxflow.model import build_model
-
-_CONFIG = config_flags.DEFINE_config_file("config", None, "config file", lock_config=True)
 
 
 def parameter_counts(model_config) -> dict:
@@ -26,8 +21,10 @@ def parameter_counts(model_config) -> dict:
 
 
 def main(argv):
+  from absl import flags  # pylint: disable=import-outside-toplevel
+
   del argv
-  counts = parameter_counts(_CONFIG.value.model)
+  counts = parameter_counts(flags.FLAGS.config.model)
   width = max(len(k) for k in counts)
   for name, count in counts.items():
     print(f"{name:<{width}}  {count:>10,}")
@@ -37,5 +34,15 @@ def main(argv):
   print(f"total parameters: {sum(counts.values())}")
 
 
+def run():
+  """`python -m jaxflow.summary --config FILE`: the flag is defined here, by the tool alone."""
+  from jaxflow import cli  # pylint: disable=import-outside-toplevel
+  from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
+
+  cli.run(main, lambda: config_flags.DEFINE_config_file(
+    "config", None, "Config file whose model is counted (FILE.py[:ARG]).", lock_config=True),
+          {"config": None})
+
+
 if __name__ == "__main__":
-  app.run(main)
+  run()

@@ -11,7 +11,7 @@ of that name when the working directory has none.
 import sys
 from pathlib import Path
 
-from jaxflow import cli, distributed, training
+from jaxflow import cli, distributed, run_log, training
 
 
 def _define_flags():
@@ -48,7 +48,7 @@ def main(argv):
     cli.fail("--workdir is required: the folder for the run's checkpoints, metrics and results")
   try:
     training.train_and_evaluate(flags.FLAGS.config, workdir)
-  except training.Interrupted as e:
+  except run_log.Interrupted as e:
     print(e, file=sys.stderr)
     return 128 + e.signum
   print(f"outputs in {Path(workdir).absolute()}:\n{written(workdir)}", file=sys.stderr)

@@ -32,18 +32,17 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from tqdm import tqdm
 
-from jaxflow import checkpointing, curves, distributed, evaluation, test_time
-from jaxflow.checkpointing import restore_checkpoint  # noqa: F401 (training.restore_checkpoint)
+from jaxflow import checkpointing, curves, distributed, evaluation, reporting
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.losses import refinement_loss, sequence_loss
 from jaxflow.metrics import METRICS
-from jaxflow.model import PARAMETER_FREE_FIELDS, build_model
-from jaxflow.model_fields import REFINE_FIELDS, RUNTIME_MODEL_FIELDS
-from jaxflow.run_log import Interrupted, MetricsLog, PendingMetrics, StopSignals  # noqa: F401
-from jaxflow.train_state import (  # noqa: F401 (the train state's API, also from here)
+from jaxflow.model import build_model
+from jaxflow.model_fields import PARAMETER_FREE_FIELDS, REFINE_FIELDS, RUNTIME_MODEL_FIELDS
+from jaxflow.run_log import Interrupted, MetricsLog, PendingMetrics, StopSignals
+from jaxflow.train_state import (
   REFINE, TrainState, abstract_train_state, create_train_state, init_params, learning_rate,
-  make_optimizer, merge_params, param_labels, split_params, trainable_pattern)
+  make_optimizer, merge_params, split_params, trainable_pattern)
 
 BATCH_KEYS = ("pc1", "pc2", "flow", "mask")
 
@@ -143,7 +142,7 @@ def _load_init_params(params, config):
     if stage == 2:
       raise ConfigError("stage 2 needs config.train.init_from (the stage-1 workdir or step folder)")
     return params
-  loaded_state, loaded_config, step = restore_checkpoint(config.train.init_from)
+  loaded_state, loaded_config, step = checkpointing.restore_checkpoint(config.train.init_from)
   diffs = checkpointing.model_differences(loaded_config, config,
                                           ignore=PARAMETER_FREE_FIELDS + REFINE_FIELDS)
   if diffs:
@@ -167,6 +166,7 @@ def _load_init_params(params, config):
 
 
 def _check_config(config, n_devices: int):
+  evaluation.check_no_test_time(config.eval)
   t = config.train
   if t.stage not in (1, 2):
     raise ConfigError(f"config.train.stage must be 1 or 2, got {t.stage}")
@@ -346,7 +346,7 @@ def finish(run: Run, state: TrainState):
     results = evaluate_run(state.params, config, run.heldout)
     if distributed.is_primary():
       (run.workdir / "eval.json").write_text(json.dumps(results, indent=2) + "\n")
-      print(evaluation.format_table(
+      print(reporting.format_table(
         [(f"{config.eval.dataset} ({config.eval.split})", results["model"]),
          ("zero flow", results["zero_flow"])]
       ))
@@ -375,7 +375,6 @@ def heldout_evaluator(config) -> evaluation.Evaluator:
     build_model(config.model, inference=True), ds, num_points=config.eval.num_points or None,
     batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
     refine=config.train.stage == 2, seed=config.eval.seed,
-    optimise=test_time.settings_from_config(config.eval),
   )
 
 

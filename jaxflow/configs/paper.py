@@ -111,11 +111,6 @@ def get_config(arg: str = "") -> ml_collections.ConfigDict:
   # > 0: evaluate on these pairs every this many steps during training too (held-out EPE as it
   # trains: WORKDIR/eval_metrics.jsonl and the learning curve); 0: only at the end.
   config.eval.every = 0
-  # Test-time optimisation of the predicted flow (jaxflow.test_time: Chamfer distance to pc2 +
-  # smoothness, Adam, no ground truth). Off (steps 0) in the paper's protocol; opt in with
-  # --config.eval.test_time.steps=N (MODEL_CARD.md measures it on the shipped checkpoint).
-  config.eval.test_time = ml_collections.ConfigDict(dict(
-    steps=0, learning_rate=0.01, smoothness=3.0, neighbours=8, truncate=2.0, refresh=10))
   if arg == "stage2":
     to_stage2(config)
   return config

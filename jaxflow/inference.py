@@ -1,0 +1,271 @@
+"""Flow of two point clouds by a method of jaxflow.methods: the library side of jaxflow.predict.
+
+    flow_Nx3 = predict_flow(pc1_Nx3, pc2_Mx3)                    # optimise, as the command
+    flow_Nx3 = predict_flow(pc1_Nx3, pc2_Mx3, method="network")  # the network alone
+    predictor = load_predictor(checkpoint, method="nsfp", objective="grid")
+    prediction = predictor.predict(pc1_Nx3, pc2_Mx3)   # .flow, .notes, .used, .sweep
+
+Cloud size. A cloud with at most `max_points` points (8192, the paper's test size; 0 or None: whole
+clouds) is used whole, without resampling. A larger one is sampled to `max_points` points without
+replacement, seeded (`seed`: the same call gives the same flow); pc1 and pc2 are sampled
+independently. The flow is then mapped back to EVERY point of pc1: an unsampled pc1 point takes the
+flow of its nearest sampled pc1 point (Euclidean; a sampled point keeps its own). With the
+`optimise` method that mapped network flow is then optimised at every point against every pc2 point.
+`full=True` runs the model on the whole clouds instead, with the correlation and kNN built
+`corr_chunk` pc1 rows at a time (memory linear in the points; time grows as N x M).
+
+Raw sweeps (`lidar=True`): the ground and the points beyond `max_range` go first
+(ground.raw_sweep_flow); every pc1 point still gets a row, a removed one the ego-motion flow.
+"""
+
+import dataclasses
+import functools
+import warnings
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from jaxflow import checkpointing, evaluation, geometry, ground, methods, optimiser
+from jaxflow.data.pointfiles import read_points
+from jaxflow.data.sampling import sample_indices
+from jaxflow.errors import ConfigError, DataError
+
+DEFAULT_METHOD = "optimise"  # the API's and predict's: the network's flow refined per pair
+DEFAULT_MAX_POINTS = 8192  # the paper's evaluation size
+DEFAULT_ITERS = 32  # the paper's flow iterations at test time
+DEFAULT_CORR_CHUNK = 2048  # full=True: pc1 rows of the correlation / kNN built at a time
+SIZE_RATIO_WARNING = 100  # one cloud with this many times the other's points: a warning
+
+
+@dataclasses.dataclass(frozen=True)
+class Prediction:
+  """One call's flow and what the user should know about it."""
+
+  flow: np.ndarray  # N x 3 float32, a row per point of pc1 in its order
+  notes: tuple = ()  # non-convergence of an optimisation, a lopsided pair
+  used: tuple = ()  # (pc1, pc2) points the method was given (after the lidar cut)
+  sweep: object = None  # ground.SweepInfo with lidar=True
+
+
+def method_settings(method: str, steps: int | None = None, objective: str | None = None):
+  """methods.settings(method, steps), with NSFP's objective (exact or grid) when given."""
+  chosen = methods.settings(method, steps)
+  if objective is None:
+    return chosen
+  if method != "nsfp":
+    raise ConfigError(f"--objective chooses NSFP's objective: it needs --method nsfp, not {method}")
+  if objective not in optimiser.OBJECTIVES:
+    raise ConfigError(f"--objective must be one of {', '.join(optimiser.OBJECTIVES)}, "
+                      f"got {objective!r}")
+  return dataclasses.replace(chosen, objective=objective)
+
+
+def lopsided(n1: int, n2: int) -> str | None:
+  """A warning when one cloud has SIZE_RATIO_WARNING times the other's points (None otherwise)."""
+  ratio = max(n1, n2) / max(min(n1, n2), 1)
+  if ratio <= SIZE_RATIO_WARNING:
+    return None
+  return (f"PC1 has {n1} points and PC2 {n2} ({ratio:.0f}x) as the method saw them: the model "
+          "expects two scans of one scene at a similar density; this flow is unlikely to mean much")
+
+
+@dataclasses.dataclass
+class Predictor:
+  """A method with its network (None for nsfp): `predictor.predict(pc1_Nx3, pc2_Mx3)` ->
+  Prediction; `predictor(pc1_Nx3, pc2_Mx3)` -> its flow alone."""
+
+  model: object
+  params: object
+  config: ml_collections.ConfigDict  # the checkpoint's config (the model it was built from)
+  refine: bool  # the refined flow (stage 2) or the last iteration's
+  name: str = ""  # checkpoint path and step, for messages
+  method: str = "network"  # jaxflow.methods: network, nsfp (model None) or optimise
+  method_settings: object = None  # None: the method's defaults
+  _fns: dict = dataclasses.field(default_factory=dict, repr=False)  # compiled, by shapes' settings
+
+  @property
+  def min_points(self) -> int:
+    """Fewer points than the model's neighbourhood (config.model.knn) are refused."""
+    return int(self.config.model.knn)
+
+  def _fn(self, num_iters: int, corr_chunk: int, method: str):
+    """jit (params, pc1, pc2) -> (flow, info) of `method` (this predictor's or `network`)."""
+    key = (num_iters, corr_chunk, method)
+    if key not in self._fns:
+      model = self.model if self.model is None or corr_chunk == self.model.corr_chunk else (
+        self.model.clone(corr_chunk=corr_chunk))
+      chosen = self.method_settings if method == self.method else None
+      self._fns[key] = evaluation.model_predict_fn(model, num_iters, self.refine, method, chosen,
+                                                   with_info=True)
+    return self._fns[key]
+
+  def __call__(self, pc1_Nx3, pc2_Mx3, **kwargs) -> np.ndarray:
+    """The flow N x 3 of every point of pc1 (`predict`'s arguments)."""
+    return self.predict(pc1_Nx3, pc2_Mx3, **kwargs).flow
+
+  def predict(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
+              max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
+              corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
+              lidar: bool = False, up: str = "z",
+              max_range: float | None = ground.DEFAULT_MAX_RANGE) -> Prediction:
+    """The Prediction of every point of pc1 (the module docstring: sampling, full, lidar)."""
+    kwargs = dict(num_iters=num_iters, max_points=max_points, full=full, corr_chunk=corr_chunk,
+                  seed=seed)
+    if not lidar:
+      return self._predict(as_cloud(pc1_Nx3, names[0], self.min_points),
+                           as_cloud(pc2_Mx3, names[1], self.min_points), **kwargs)
+    kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
+    inner = []  # the Prediction of the kept points (this call's own)
+
+    def estimate(kept1, kept2):
+      inner.append(self._predict(as_cloud(kept1, kept_names[0], self.min_points),
+                                 as_cloud(kept2, kept_names[1], self.min_points), **kwargs))
+      return inner[-1].flow
+
+    clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
+    flow, sweep = ground.raw_sweep_flow(estimate, *clouds, up=up, max_range=max_range, names=names)
+    return dataclasses.replace(inner[-1], flow=np.asarray(flow, np.float32), sweep=sweep)
+
+  def _predict(self, pc1_Nx3, pc2_Mx3, num_iters, max_points, full, corr_chunk, seed):
+    if num_iters < 1:
+      raise ConfigError(f"num_iters must be >= 1, got {num_iters}")
+    if corr_chunk < 0:
+      raise ConfigError(f"corr_chunk must be >= 0, got {corr_chunk}")
+    if max_points is not None and max_points < 0:
+      raise ConfigError(f"max_points must be >= 0, got {max_points}")
+    used = (len(pc1_Nx3), len(pc2_Mx3))
+    notes = [lopsided(*used)]
+    if full or not max_points:
+      flow, info = self._fn(num_iters, corr_chunk, self.method)(
+        self.params, pc1_Nx3[None], pc2_Mx3[None])
+      return self._prediction(flow[0], info, notes, used)
+    if max_points < self.min_points:
+      raise ConfigError(f"max_points={max_points} is below the model's neighbourhood "
+                        f"(config.model.knn={self.min_points})")
+    rng = np.random.default_rng(seed)
+    idx1 = sample_indices(len(pc1_Nx3), max_points, rng)[0] if len(pc1_Nx3) > max_points else None
+    idx2 = sample_indices(len(pc2_Mx3), max_points, rng)[0] if len(pc2_Mx3) > max_points else None
+    sub1 = pc1_Nx3 if idx1 is None else pc1_Nx3[idx1]
+    sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
+    every_point = self.method == "optimise"  # the network sees samples, the optimiser every point
+    fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0),
+                  "network" if every_point else self.method)
+    flow_Sx3, info = fn(self.params, sub1[None], sub2[None])
+    flow_Sx3 = np.asarray(flow_Sx3[0])
+    flow_Nx3 = flow_Sx3 if idx1 is None else spread_flow(pc1_Nx3, sub1, flow_Sx3)
+    if idx1 is not None:
+      flow_Nx3[idx1] = flow_Sx3  # a sampled point keeps its own flow, even at ties
+    if every_point:
+      flow, info = _from_start(self.method_settings)(flow_Nx3[None], pc1_Nx3[None], pc2_Mx3[None])
+      flow_Nx3 = flow[0]
+    return self._prediction(flow_Nx3, info, notes, used)
+
+  def _prediction(self, flow_Nx3, info, notes, used) -> Prediction:
+    notes = [*notes, methods.convergence_note(self.method, jax.device_get(info))]
+    return Prediction(np.asarray(flow_Nx3, np.float32), tuple(n for n in notes if n), used)
+
+
+@functools.lru_cache(maxsize=8)
+def _from_start(chosen):
+  """jit (start flow, pc1, pc2) -> (flow, info) of `optimise` from a given starting flow (the
+  network's flow of the samples spread to every point)."""
+  return jax.jit(methods.flow_fn("optimise", lambda start, pc1, pc2: start, chosen,
+                                 with_info=True))
+
+
+def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndarray:
+  """Flow N x 3 for every point: the flow of its nearest sampled point (chunked: memory ~ chunk x S)."""
+  return np.array(_spread(jnp.asarray(points_Nx3), jnp.asarray(sampled_Sx3),
+                           jnp.asarray(flow_Sx3), chunk))
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _spread(points_Nx3, sampled_Sx3, flow_Sx3, chunk):
+  nearest_N = geometry.knn(points_Nx3[None], sampled_Sx3[None], 1, chunk)[0, :, 0]
+  return flow_Sx3[nearest_N]
+
+
+def as_cloud(points, name, min_points: int) -> np.ndarray:
+  """An N x 3 float32 array, finite, with at least `min_points` points; else DataError(name)."""
+  a = np.asarray(points)
+  if a.dtype.kind not in "iuf":
+    raise DataError(name, f"points have dtype {a.dtype}, expected numbers")
+  if a.ndim != 2 or a.shape[1] != 3:
+    raise DataError(name, f"points have shape {a.shape}, expected N x 3")
+  a = a.astype(np.float32)
+  if not np.isfinite(a).all():
+    raise DataError(name, "non-finite coordinates (read_points drops such rows)")
+  if len(a) < min_points:
+    raise DataError(name, f"only {len(a)} points; the model needs at least {min_points} "
+                    "(its neighbourhood size, config.model.knn)")
+  return a
+
+
+def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = None,
+                   model_fields=(), method: str = "network", steps: int | None = None,
+                   objective: str | None = None) -> Predictor:
+  """The Predictor of `method` (jaxflow.methods; `steps` caps its optimiser, `objective` is
+  NSFP's) with the model of a checkpoint (workdir, checkpoints folder or step folder; None: the
+  shipped one; nsfp loads none). `model_fields`: checkpointing.load_for_inference."""
+  chosen = method_settings(method, steps, objective)
+  if method not in methods.NEEDS_NETWORK:
+    return Predictor(None, None, ml_collections.ConfigDict({"model": {"knn": 1}}), False,
+                     name="NSFP, no network", method=method, method_settings=chosen)
+  model, params, saved, step, refine = checkpointing.load_for_inference(checkpoint, config,
+                                                                        model_fields)
+  return Predictor(model, params, saved, refine, method=method, method_settings=chosen,
+                   name=f"{checkpoint or checkpointing.SHIPPED_CHECKPOINT} (step {step})")
+
+
+def fresh_predictor(config: ml_collections.ConfigDict, seed: int = 0,
+                    method: str = "network") -> Predictor:
+  """An untrained model of `config.model` (random parameters): for trying the API without weights."""
+  from jaxflow import train_state  # pylint: disable=import-outside-toplevel
+  from jaxflow.model import build_model  # pylint: disable=import-outside-toplevel
+
+  model = build_model(config.model)
+  params = train_state.init_params(model, config, jax.random.key(seed))
+  return Predictor(model, params, config, refine=False, name="fresh (untrained)", method=method,
+                   method_settings=methods.settings(method))
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_predictor(checkpoint: str | None, method: str, steps, objective) -> Predictor:
+  return load_predictor(checkpoint, method=method, steps=steps, objective=objective)
+
+
+def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
+                 steps: int | None = None, objective: str | None = None,
+                 num_iters: int = DEFAULT_ITERS, max_points: int | None = DEFAULT_MAX_POINTS,
+                 full: bool = False, corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
+                 predictor: Predictor | None = None, lidar: bool = False, up: str = "z",
+                 max_range: float | None = ground.DEFAULT_MAX_RANGE) -> np.ndarray:
+  """Flow N x 3 (float32) of every point of pc1 towards pc2 by `method` (default DEFAULT_METHOD,
+  `optimise`, as `python -m jaxflow.predict`); the checkpoint (None: the shipped one) is loaded once
+  and kept. `predictor` (load_predictor / fresh_predictor) replaces checkpoint and method. The
+  Prediction's notes (non-convergence, a lopsided pair) are issued as warnings."""
+  if predictor is None:
+    predictor = _cached_predictor(None if checkpoint is None else str(checkpoint),
+                                  method or DEFAULT_METHOD, steps, objective)
+  elif method is not None and method != predictor.method:
+    raise ConfigError(f"method={method!r} but the predictor given runs {predictor.method!r}")
+  prediction = predictor.predict(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points,
+                                 full=full, corr_chunk=corr_chunk, seed=seed, lidar=lidar, up=up,
+                                 max_range=max_range)
+  for note in prediction.notes:
+    warnings.warn(note, stacklevel=2)
+  return prediction.flow
+
+
+def read_cloud(path) -> tuple[np.ndarray, str | None]:
+  """read_points(path) and a note when non-finite rows were dropped (None otherwise)."""
+  with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    points = read_points(path)
+  notes = [str(w.message) for w in caught if "non-finite" in str(w.message)]
+  for w in caught:
+    if "non-finite" not in str(w.message):
+      warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+  return points, (notes[0] if notes else None)

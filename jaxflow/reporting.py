@@ -1,0 +1,54 @@
+"""What evaluate.py and train.py print and write of an evaluation: the paper's table, the
+three-way table, convergence notes, the JSON file and the pictures of every pair."""
+
+import json
+import sys
+from pathlib import Path
+
+from jaxflow import methods, tables
+from jaxflow.errors import ConfigError
+from jaxflow.metrics import format_three_way
+
+
+def format_table(rows) -> str:
+  """rows: (dataset name, results) -> the layout of the paper's Tables 2-3."""
+  header = ("Dataset", "EPE(m)", "AccS(%)", "AccR(%)", "Outliers(%)", "θε(rad)", "pairs", "ms/pair")
+  return tables.markdown_table(header, [(
+    name, f"{r['epe']:.4f}", f"{r['acc_strict']:.2f}", f"{r['acc_relax']:.2f}",
+    f"{r['outliers']:.2f}", f"{r['angle']:.4f}", str(r["pairs"]), f"{r['ms_per_pair']:.1f}",
+  ) for name, r in rows])
+
+
+def report(results: dict, json_path=None):
+  """Prints the table of `results` (evaluation.evaluate_checkpoint's; the three-way table when it
+  has one, a convergence note on stderr) and writes them to `json_path` (JSON) when given."""
+  name = f"{results['dataset']} ({results['split']})"
+  print(format_table([(name, results)]))
+  if "three_way" in results:
+    print(format_three_way([(name, results)]))
+  note = methods.evaluation_note(results["method"], results.get("convergence"))
+  if note:
+    print(f"note: {note}", file=sys.stderr)
+  if json_path:
+    Path(json_path).absolute().parent.mkdir(parents=True, exist_ok=True)
+    Path(json_path).write_text(json.dumps(results, indent=2) + "\n")
+
+
+def pair_stem(name) -> str:
+  """The picture's file name (without .png) of a pair."""
+  return str(name).strip("/").replace("/", "_").replace(":", "_")
+
+
+def render_batch(render_dir, batch, pred_BxNx3):
+  """The Fig. 2 view (jaxflow.viz) of every real pair of a batch, as RENDER_DIR/NAME.png."""
+  try:
+    from jaxflow import viz  # pylint: disable=import-outside-toplevel  (matplotlib: only here)
+  except ImportError as e:
+    raise ConfigError(f"--render_dir needs the jaxflow.viz module, which cannot be imported ({e})")
+  Path(render_dir).mkdir(parents=True, exist_ok=True)
+  for i, name in enumerate(batch["names"]):
+    if not batch["pair_valid"][i]:
+      continue
+    viz.render_pair(batch["pc1"][i], batch["pc2"][i], pred_BxNx3[i],
+                    Path(render_dir) / f"{pair_stem(name)}.png", gt=batch["flow"][i],
+                    title=str(name), mask=batch["mask"][i] if "mask" in batch else None)
