@@ -1,4 +1,5 @@
-"""jaxflow.predict: the command line on user files (broken ones -> exit 2, one line) and the API."""
+"""jaxflow.predict (the command line on user files: broken ones -> exit 2, one line) and
+jaxflow.inference (the API)."""
 
 import os
 import pathlib
@@ -10,8 +11,9 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import default
-from jaxflow import checkpointing, export, predict, rigid, test_time, training
+from jaxflow import checkpointing, export, inference, rigid, train_state
 from jaxflow.data import open_dataset, read_points
+from jaxflow.errors import DataError
 from jaxflow.data.sampling import sample_pair
 from jaxflow.model import build_model
 
@@ -25,8 +27,9 @@ def workdir(tmp_path_factory):
   config = default.get_config("smoke")
   config.train.stage = 2
   model = build_model(config.model)
-  tx = training.make_optimizer(config, 1)
-  state = training.create_train_state(training.init_params(model, config, jax.random.key(0)), tx)
+  tx = train_state.make_optimizer(config, 1)
+  state = train_state.create_train_state(train_state.init_params(model, config, jax.random.key(0)),
+                                         tx)
   path = tmp_path_factory.mktemp("ckpt")
   ckpts = checkpointing.Checkpoints(path / "checkpoints")
   ckpts.save(1, state, config)
@@ -48,8 +51,8 @@ def files(tmp_path_factory, pair):
   pc1, pc2, _ = pair
   np.save(d / "pc1.npy", pc1)
   np.save(d / "pc2.npy", pc2)
-  predict.write_ply(d / "pc1.ply", pc1)
-  predict.write_ply(d / "pc2.ply", pc2)
+  export.write_ply(d / "pc1.ply", pc1)
+  export.write_ply(d / "pc2.ply", pc2)
   with_nan = pc1.copy()
   with_nan[[3, 10]] = np.nan
   np.save(d / "nan.npy", with_nan)
@@ -93,7 +96,7 @@ def _cli(*args):
 
 @pytest.fixture(scope="module")
 def predictor(workdir):
-  return predict.load_predictor(workdir)
+  return inference.load_predictor(workdir)
 
 
 @pytest.fixture(scope="module")
@@ -117,15 +120,19 @@ def runs(files, workdir):
                 "--render", d / "view.png"),
     "ply": _cli(d / "pc1.ply", d / "pc2.ply", "--out", d / "flow_ply.npy", *net, "--iters", 4),
     "nan": _cli(d / "nan.npy", d / "pc2.npy", "--out", d / "flow_nan.npy", *net, "--iters", 4,
-                "--max-points", 100),
+                "--max_points", 100),
     "candidates": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_k4.npy", *net, "--iters", 4,
                        "--config.model.infer_truncate_k=4"),  # without a --config file
-    "test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_tt.npy", *net, "--iters", 4,
-                      "--config.eval.test_time.steps=20"),
-    "bad_test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o9.npy", *ck,
-                          "--config.eval.test_time.learning_rate=-1"),
+    "test_time": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o9.npy", *ck,
+                      "--config.eval.test_time.steps=20"),  # removed: names its replacement
+    "nsfp_grid": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_nsfp.npy", "--method",
+                      "nsfp", "--objective", "grid", "--steps", 10),
+    "objective_not_nsfp": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o12.npy", *net,
+                               "--objective", "grid"),
+    "hyphenated": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o11.npy", *ck,
+                       "--max-points", "100"),
     "lidar": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_lidar.npy", *net, "--lidar",
-                  "--iters", 2, "--save-flows", d / "flows"),
+                  "--iters", 2, "--save_flows", d / "flows"),
     "bad_up": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "o10.npy", *ck, "--lidar",
                    "--up", "x"),  # no ground plane across the x axis
     "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *net,
@@ -151,7 +158,9 @@ def runs(files, workdir):
   ("few", ["few.npy", "only 5 points", "config.model.knn"]),
   ("bad_checkpoint", ["nothing_here"]),
   ("config_contradicts", ["contradicts the checkpoint"]),
-  ("bad_test_time", ["config.eval.test_time", "learning_rate"]),
+  ("test_time", ["--config.eval.test_time.steps", "--method optimise"]),
+  ("hyphenated", ["--max-points is now --max_points"]),
+  ("objective_not_nsfp", ["--objective", "--method nsfp", "network"]),
   ("bad_up", ["raw1.npy", "no ground plane", "x axis"]),
 ])
 def test_broken_input_is_one_line_and_exit_2(runs, case, words):
@@ -173,7 +182,7 @@ def test_round_trip_npy_and_ply(runs, files, predictor, pair):
   assert np.isfinite(flow_npy).all()
   np.testing.assert_array_equal(read_points(files / "pc1.ply"), pair[0])  # the writer round-trips
   np.testing.assert_allclose(flow_ply, flow_npy, atol=1e-5)
-  api = predict.predict_flow(pair[0], pair[1], num_iters=4, predictor=predictor)  # same as the CLI
+  api = inference.predict_flow(pair[0], pair[1], num_iters=4, predictor=predictor)  # the CLI's
   np.testing.assert_allclose(api, flow_npy, atol=1e-4)
   png = (files / "view.png").read_bytes()
   assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 1000
@@ -184,19 +193,9 @@ def test_cli_sets_the_test_time_candidates(runs, files, predictor, pair):
   assert rc == 0, stderr
   config = predictor.config.copy_and_resolve_references()
   config.model.truncate_k = 4  # the smoke checkpoint keeps 16; a model built with 4 directly
-  four = predict.Predictor(build_model(config.model), predictor.params, config, refine=True)
+  four = inference.Predictor(build_model(config.model), predictor.params, config, refine=True)
   flow = np.load(files / "flow_k4.npy")
   np.testing.assert_allclose(flow, four(pair[0], pair[1], num_iters=4), atol=1e-4)
-  assert not np.allclose(flow, np.load(files / "flow_npy.npy"), atol=1e-3)
-
-
-def test_cli_optimises_the_flow_at_test_time(runs, files, predictor, pair):
-  rc, _, stderr = runs["test_time"]
-  assert rc == 0, stderr
-  assert "then 20 test-time steps" in stderr
-  flow = np.load(files / "flow_tt.npy")
-  api = predictor(pair[0], pair[1], num_iters=4, optimise=test_time.Settings(steps=20))
-  np.testing.assert_allclose(flow, api, atol=1e-4)
   assert not np.allclose(flow, np.load(files / "flow_npy.npy"), atol=1e-3)
 
 
@@ -204,7 +203,7 @@ def test_larger_cloud_gives_one_row_per_input_point(runs, files):
   rc, _, stderr = runs["config_smoke"]  # config.eval.num_points = 64 < 300 points: sampled
   assert rc == 0, stderr
   assert "sampled to 64" in stderr and np.load(files / "flow_cfg.npy").shape == (2 * N1, 3)
-  rc, _, stderr = runs["nan"]  # --max-points 100 < 148 points
+  rc, _, stderr = runs["nan"]  # --max_points 100 < 148 points
   assert rc == 0, stderr
   assert "sampled to 100" in stderr
 
@@ -229,9 +228,9 @@ def test_sampling_maps_flow_to_nearest_sampled_point(predictor, files, pair):
 def test_optimise_refines_every_point_of_a_sampled_cloud(workdir, files):
   big = np.load(files / "big.npy")
   move = np.float32([0.3, 0.0, -0.2])
-  optimiser = predict.load_predictor(workdir, method="optimise", steps=40)
+  optimiser = inference.load_predictor(workdir, method="optimise", steps=40)
   flow = optimiser(big, big + move, num_iters=4, max_points=N1, seed=3)  # the network sees N1
-  network = predict.load_predictor(workdir)(big, big + move, num_iters=4, max_points=N1, seed=3)
+  network = inference.load_predictor(workdir)(big, big + move, num_iters=4, max_points=N1, seed=3)
   assert flow.shape == (2 * N1, 3) and np.isfinite(flow).all()
   # Not the sampled points' flows copied (as for the network): every point was optimised.
   assert len(np.unique(network, axis=0)) <= N1 < len(np.unique(flow, axis=0))
@@ -249,18 +248,17 @@ def test_full_clouds_with_chunks_match_unchunked(predictor, pair):
 
 
 def test_api_rejects_small_or_malformed_clouds(predictor, pair):
-  with pytest.raises(predict.DataError, match="pc2: only 4 points"):
+  with pytest.raises(DataError, match="pc2: only 4 points"):
     predictor(pair[0], pair[1][:4])
-  with pytest.raises(predict.DataError, match="expected N x 3"):
+  with pytest.raises(DataError, match="expected N x 3"):
     predictor(pair[0][:, :2], pair[1])
 
 
 def test_default_checkpoint_is_the_shipped_one(pair):
-  assert predict.SHIPPED_CHECKPOINT == predict.evaluation.SHIPPED_CHECKPOINT
-  assert predict.SHIPPED_CHECKPOINT.parent.parent == pathlib.Path(ROOT) / "jaxflow"
-  if not predict.SHIPPED_CHECKPOINT.exists():
+  assert checkpointing.SHIPPED_CHECKPOINT.parent.parent == pathlib.Path(ROOT) / "jaxflow"
+  if not checkpointing.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")
-  flow = predict.predict_flow(pair[0][:64], pair[1][:64], num_iters=2)
+  flow = inference.predict_flow(pair[0][:64], pair[1][:64], method="network", num_iters=2)
   assert flow.shape == (64, 3) and np.isfinite(flow).all()
 
 
@@ -278,5 +276,49 @@ def test_lidar_gives_every_raw_point_a_flow_and_saves_it(runs, files, predictor)
   removed = np.r_[0:250, len(raw1) - 20:len(raw1)]
   fit = rigid.kabsch(raw1[removed], raw1[removed] + flow[removed])
   np.testing.assert_allclose(fit.flow(raw1[removed]), flow[removed], atol=1e-3)
-  api = predict.predict_flow(raw1, raw2, num_iters=2, predictor=predictor, lidar=True, up="z")
+  api = inference.predict_flow(raw1, raw2, num_iters=2, predictor=predictor, lidar=True, up="z")
   np.testing.assert_allclose(api, flow, atol=1e-4)
+
+
+def test_nsfp_is_a_method_of_predict_with_its_objective(runs, files, pair):
+  rc, _, stderr = runs["nsfp_grid"]
+  assert rc == 0, stderr
+  assert "method nsfp (grid objective)" in stderr and "did not fire within 10 steps" in stderr
+  api = inference.predict_flow(pair[0], pair[1], method="nsfp", objective="grid", steps=10)
+  np.testing.assert_allclose(np.load(files / "flow_nsfp.npy"), api, atol=1e-5)
+
+
+def test_notes_come_with_the_flow_and_as_warnings(pair):
+  predictor = inference.load_predictor(method="nsfp", steps=5)
+  first = predictor.predict(pair[0], pair[1])
+  assert any("did not fire within 5 steps" in n for n in first.notes)
+  assert first.used == (N1, N2) and first.sweep is None
+  assert not hasattr(predictor, "notes")  # nothing of a call is kept on the (cached) predictor
+  with pytest.warns(UserWarning, match="did not fire within 5 steps"):
+    inference.predict_flow(pair[0], pair[1], predictor=predictor)
+
+
+def _lopsided_after_the_cut(seed=1):
+  """Raw sweeps of similar sizes whose clouds after the --lidar cut are not: pc1 keeps 1600 box
+  points, pc2 12 (the rest of pc2 is ground)."""
+  rng = np.random.default_rng(seed)
+  ground = lambda n: np.c_[rng.uniform(-25, 25, (n, 2)), rng.normal(-1.7, 0.02, n)]
+  box = lambda n: rng.uniform(0, 1, (n, 3)) * [3, 2, 1.6] + [6, 2, -1.2]
+  raw1 = np.concatenate([ground(400), box(1600)])
+  raw2 = np.concatenate([ground(1990), box(12)])
+  return raw1.astype(np.float32), raw2.astype(np.float32)
+
+
+def test_size_warning_compares_the_clouds_after_the_lidar_cut(predictor):
+  raw1, raw2 = _lopsided_after_the_cut()
+  assert inference.lopsided(len(raw1), len(raw2)) is None  # the raw clouds are alike
+  got = predictor.predict(raw1, raw2, num_iters=2, lidar=True)
+  assert got.used == got.sweep.kept and got.used[0] > 100 * got.used[1], got.used
+  assert any(n.startswith(f"PC1 has {got.used[0]} points and PC2 {got.used[1]}")
+             for n in got.notes), got.notes
+  # The other way round: lopsided raw clouds whose kept parts are alike give no warning.
+  rng = np.random.default_rng(2)
+  extra = np.c_[rng.uniform(-25, 25, (30000, 2)), rng.normal(-1.7, 0.02, 30000)].astype(np.float32)
+  alike = predictor.predict(np.concatenate([raw1, extra]), raw1[400:], num_iters=2, lidar=True,
+                            max_points=256)
+  assert not any(n.startswith("PC1 has") for n in alike.notes), alike.notes
