@@ -19,7 +19,7 @@ import time
 
 import jax
 
-from jaxflow import evaluation, methods
+from jaxflow import checkpointing, evaluation, methods
 from jaxflow.data import eval_batches, open_dataset
 
 DATA = pathlib.Path(__file__).absolute().parent.parent.parent / "shared" / "data"
@@ -46,7 +46,7 @@ def main():
   parser.add_argument("--methods", default="network,nsfp,optimise")
   parser.add_argument("--num-points", type=int, default=8192)
   args = parser.parse_args()
-  model, params, _, _, refine = evaluation.load_model(None)
+  model, params, _, _, refine = checkpointing.load_for_inference(None)
   rows, results = [], {}
   for method in args.methods.split(","):
     chosen = methods.settings(method, args.nsfp_steps if method == "nsfp" else None)

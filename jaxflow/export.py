@@ -1,5 +1,5 @@
 """Flows and clouds as files other tools read: `save_flow` (--out of predict and jaxflow.nsfp),
-`FlowSaver` (the flow of every pair, `--save-flows DIR` of predict and evaluate.py), `write_ply`.
+`FlowSaver` (the flow of every pair, `--save_flows DIR` of predict and evaluate.py), `write_ply`.
 
 One `.npy` per pair (float32 N x 3, row i the flow of pc1's point i as the model saw it), named by
 the pair: `flow_stem(pair.name)`, the pair's name with every run of characters other than letters,
@@ -58,20 +58,20 @@ class FlowSaver:
     try:
       self.folder.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-      raise ConfigError(f"--save-flows {self.folder}: cannot create ({e.strerror or e})") from None
+      raise ConfigError(f"--save_flows {self.folder}: cannot create ({e.strerror or e})") from None
     self.written: dict[str, str] = {}  # stem -> pair name
 
   def save(self, name: str, flow_Nx3) -> pathlib.Path:
     stem = flow_stem(name)
     if self.written.get(stem, name) != name:
-      raise ConfigError(f"--save-flows: pairs {self.written[stem]!r} and {name!r} map to the same "
+      raise ConfigError(f"--save_flows: pairs {self.written[stem]!r} and {name!r} map to the same "
                         f"file {stem}.npy")
     self.written[stem] = name
     path = self.folder / f"{stem}.npy"
     try:
       np.save(path, np.asarray(flow_Nx3, np.float32))
     except OSError as e:
-      raise ConfigError(f"--save-flows {path}: cannot write ({e.strerror or e})") from None
+      raise ConfigError(f"--save_flows {path}: cannot write ({e.strerror or e})") from None
     return path
 
   def add(self, batch: dict, pred_BxNx3):

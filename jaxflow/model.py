@@ -84,12 +84,15 @@ class SceneFlowNet(nn.Module):
       raise ValueError(f"model.refine must be 'graph', 'setconv' or 'none', got {self.refine!r}")
 
   def __call__(self, pc1_BxNx3, pc2_BxMx3, num_iters: int = 8, refine: bool | None = None,
-               freeze_backbone: bool = False, graphs=None):
+               freeze_backbone: bool = False, graphs=None, unroll: bool = False, entering=None):
     """Returns {"flows": B x Z x N x 3} and, when refining, {"refined": B x N x 3}.
 
     refine=None refines when the model has a refinement module. freeze_backbone stops gradients
     at the coarse flow (stage 2). `graphs` = (nbr1 B x N x knn, nbr2 B x M x knn) replaces the
     kNN search, e.g. to reuse graphs or to reproduce another implementation's tie-breaking.
+    For the tests of the iteration: `unroll` runs the iterations as a Python loop instead of one
+    scan (the same step); `entering` (Z x B x N x 3) gives the estimate (pc1 + flow) entering each
+    iteration instead of the previous iteration's.
     """
     if refine is None:
       refine = self.refine != "none"
@@ -110,25 +113,32 @@ class SceneFlowNet(nn.Module):
     h0 = jnp.tanh(context[..., :hidden])
     context_in = nn.relu(context[..., hidden:])
 
-    def step(mdl, carry, _):
+    def step(mdl, carry, entering_BxNx3):
       h, coords = carry
       # RAFT's detach: each iteration's gradient reaches the parameters through its own update
       # only, not back through the earlier estimates (tests/test_gradients.py pins it).
-      coords = jax.lax.stop_gradient(coords)
+      coords = jax.lax.stop_gradient(coords) if entering_BxNx3 is None else entering_BxNx3
       corr = mdl.correlation(corr_BxNxK, cand_xyz_BxNxKx3, coords)
       flow = coords - pc1_BxNx3
       h, delta = mdl.update(h, context_in, corr, flow, pc1_BxNx3, nbr1_BxNxK)
       coords = coords + delta
       return (h, coords), coords - pc1_BxNx3
 
-    if self.remat_iterations:
-      # The backward recomputes each iteration from its carry instead of keeping its activations
-      # (B x N x K x C per iteration): less memory for ~one more forward of the iterations.
-      step = nn.remat(step, prevent_cse=False)
-    scan = nn.scan(
-      step, variable_broadcast="params", split_rngs={"params": False}, length=num_iters
-    )
-    _, flows_ZxBxNx3 = scan(self, (h0, pc1_BxNx3), None)
+    if unroll:
+      carry, flows = (h0, pc1_BxNx3), []
+      for i in range(num_iters):
+        carry, flow = step(self, carry, None if entering is None else entering[i])
+        flows.append(flow)
+      flows_ZxBxNx3 = jnp.stack(flows)
+    else:
+      if self.remat_iterations:
+        # The backward recomputes each iteration from its carry instead of keeping its
+        # activations (B x N x K x C per iteration): less memory for ~one more forward.
+        step = nn.remat(step, prevent_cse=False)
+      scan = nn.scan(
+        step, variable_broadcast="params", split_rngs={"params": False}, length=num_iters
+      )
+      _, flows_ZxBxNx3 = scan(self, (h0, pc1_BxNx3), entering)
     out = {"flows": jnp.moveaxis(flows_ZxBxNx3, 0, 1)}
     if refine:
       coarse = flows_ZxBxNx3[-1]

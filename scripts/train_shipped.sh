@@ -33,7 +33,7 @@ if [[ "${1:-}" == "eval" ]]; then
   for entry in "${SETS[@]}"; do
     read -r name spec split <<< "$entry"
     render=()
-    [[ $name == ft3d || $name == kitti ]] && render=(--render "$OUT/views_$name")
+    [[ $name == ft3d || $name == kitti ]] && render=(--render_dir "$OUT/views_$name")
     $NICE "$PY" evaluate.py --dataset "$spec" --split "$split" $SETTINGS --json "$OUT/$name.json" \
       "${render[@]}"
     $NICE "$PY" -c "

@@ -1,4 +1,4 @@
-"""opensf: OpenSceneFlow h5 logs, the three-way EPE, conversion, evaluate.py on them, --save-flows.
+"""opensf: OpenSceneFlow h5 logs, the three-way EPE, conversion, evaluate.py on them, --save_flows.
 
 The fixture is written here with h5py from the documented layout (DESIGN.md section 7), so the
 reader is checked against the construction, not against itself.
@@ -15,7 +15,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxflow import checkpointing, evaluation, export, training
+from jaxflow import checkpointing, evaluation, export, train_state
 from jaxflow.configs import default
 from jaxflow.data import convert, eval_batches, open_dataset
 from jaxflow.errors import DataError
@@ -185,8 +185,8 @@ def checkpoint(tmp_path_factory):
   """A stage-1 checkpoint of the smoke model (random weights: the command path is checked)."""
   config = default.get_config("smoke")
   model = build_model(config.model)
-  state = training.create_train_state(training.init_params(model, config, jax.random.key(0)),
-                                      training.make_optimizer(config, 1))
+  state = train_state.create_train_state(train_state.init_params(model, config, jax.random.key(0)),
+                                         train_state.make_optimizer(config, 1))
   path = tmp_path_factory.mktemp("ckpt")
   ckpts = checkpointing.Checkpoints(path / "checkpoints")
   ckpts.save(1, state, config)
@@ -202,7 +202,7 @@ def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoi
   proc = subprocess.run(
     [sys.executable, "evaluate.py", "--config", "configs/default.py:smoke", "--checkpoint",
      str(checkpoint), "--dataset", f"opensf:{root}", "--split", "val", "--json", str(out),
-     "--save-flows", str(flows), "--config.eval.num_points=0", "--config.eval.batch_size=1"],
+     "--save_flows", str(flows), "--config.eval.num_points=0", "--config.eval.batch_size=1"],
     cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
   assert proc.returncode == 0, proc.stderr[-3000:]
   assert "three-way" in proc.stdout and "EPE FD" in proc.stdout

@@ -1,4 +1,5 @@
-"""evaluate.py and jaxflow.evaluation: determinism, padding, the table, bad checkpoints."""
+"""evaluate.py, jaxflow.evaluation and jaxflow.reporting: determinism, padding, the table, the
+shared flags, bad checkpoints."""
 
 import json
 import os
@@ -13,9 +14,11 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import default
-from jaxflow import checkpointing, evaluation, test_time, training
+from jaxflow import checkpointing, evaluation, reporting, training
+from jaxflow.model import build_model
 from jaxflow.data import eval_batches, open_dataset
-from jaxflow.errors import CheckpointError
+from jaxflow.errors import CheckpointError, ConfigError
+from jaxflow.metrics import METRICS
 
 REPO = Path(__file__).absolute().parent.parent
 CACHE = os.environ.setdefault(
@@ -62,14 +65,14 @@ def test_padding_pairs_are_excluded():
   one = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=1)
   three = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=3)  # 1 padding pair
   assert one["pairs"] == three["pairs"] == 5
-  for k in evaluation.METRICS:
+  for k in METRICS:
     np.testing.assert_allclose(one[k], three[k], rtol=1e-5)
 
 
 def test_model_results_match_a_direct_computation(workdir):
   """evaluate() averages per-pair metrics over pairs (here against numpy on the same pairs)."""
-  state, config, _ = training.restore_checkpoint(workdir)
-  model = training.build_model(config.model)
+  state, config, _ = checkpointing.restore_checkpoint(workdir)
+  model = build_model(config.model)
   ds = open_dataset("synthetic_lidar:3", split="test")
   got = evaluation.evaluate(model, state.params, ds, num_points=64, batch_size=2, num_iters=2)
   apply = jax.jit(lambda p, a, b: model.apply({"params": p}, a, b, num_iters=2, refine=False))
@@ -82,46 +85,52 @@ def test_model_results_match_a_direct_computation(workdir):
   assert got["pairs"] == 3 and got["ms_per_pair"] > 0
 
 
-def test_test_time_optimisation_runs_after_the_model_when_asked(workdir):
-  """config.eval.test_time.steps > 0: the model's flow, then jaxflow.test_time, then the metrics."""
-  config = default.get_config("eval")
-  config.eval.num_points, config.eval.num_iters, config.eval.batch_size = 64, 2, 2
-  config.eval.test_time.steps = 15
-  got = evaluation.evaluate_checkpoint(workdir, config, "synthetic_lidar:3", "test")
-  assert got["output"] == "coarse + test-time" and got["test_time"]["steps"] == 15
-  state, saved, _ = training.restore_checkpoint(workdir)
-  model = training.build_model(saved.model)
-  apply = jax.jit(lambda p, a, b: model.apply({"params": p}, a, b, num_iters=2, refine=False))
-  settings = test_time.Settings(steps=15)
-  epes, plain = [], []
-  for batch in eval_batches(open_dataset("synthetic_lidar:3", split="test"), 1, 64, seed=0):
-    flow = apply(state.params, batch["pc1"], batch["pc2"])["flows"][:, -1]
-    optimised = test_time.optimise_flow(flow, batch["pc1"], batch["pc2"], settings)[0]
-    for out, f in ((epes, optimised), (plain, flow)):
-      err = np.linalg.norm(np.asarray(f[0]) - batch["flow"][0], axis=-1)
-      out.append(np.sum(err * batch["mask"][0]) / np.sum(batch["mask"][0]))
-  np.testing.assert_allclose(got["epe"], np.mean(epes), rtol=1e-4)
-  assert abs(np.mean(epes) - np.mean(plain)) > 1e-4  # the optimisation changed the flow
+def test_an_old_config_with_test_time_is_refused_naming_the_method(workdir):
+  config = default.get_config("smoke")
+  with config.unlocked():
+    config.eval.test_time = {"steps": 15}
+  with pytest.raises(ConfigError, match="config.eval.test_time was removed.*--method optimise"):
+    evaluation.evaluate_checkpoint(workdir, config, "synthetic_lidar:2", "test")
+
+
+def test_shared_flags_mean_the_config_fields_and_outputs_go_where_asked(workdir, tmp_path):
+  """--iters / --max_points / --seed are config.eval.num_iters / num_points / seed (as in
+  predict); --save_flows and --render_dir receive one file per pair."""
+  out = tmp_path / "flags.json"
+  proc = evaluate_cli("--config", "configs/default.py:smoke", "--checkpoint", workdir,
+                      "--dataset", "synthetic_lidar:3", "--iters", 2, "--max_points", 48,
+                      "--seed", 3, "--json", out, "--save_flows", tmp_path / "flows",
+                      "--render_dir", tmp_path / "views")
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  config = default.get_config("smoke")
+  config.eval.num_iters, config.eval.num_points, config.eval.seed = 2, 48, 3
+  direct = evaluation.evaluate_checkpoint(workdir, config, "synthetic_lidar:3")
+  got = json.loads(out.read_text())
+  assert got["num_iters"] == 2 and got["num_points"] == 48
+  np.testing.assert_allclose(got["epe"], direct["epe"], rtol=1e-6)
+  flows = sorted((tmp_path / "flows").glob("*.npy"))
+  assert len(flows) == 3 and all(np.load(f).shape == (48, 3) for f in flows)
+  assert len(list((tmp_path / "views").glob("*.png"))) == 3
 
 
 def test_infer_truncate_k_sets_the_candidates_when_evaluating_only(workdir):
   config = default.get_config("smoke")  # truncate_k 16, infer_truncate_k 0
-  model, params, saved, _, _ = evaluation.load_model(workdir)
+  model, params, saved, _, _ = checkpointing.load_for_inference(workdir)
   assert model.truncate_k == saved.model.truncate_k == 16
   with config.unlocked():
     config.model.infer_truncate_k = 4  # a runtime field: no contradiction with the checkpoint
-  fewer, _, _, _, _ = evaluation.load_model(workdir, config, ["infer_truncate_k"])
+  fewer, _, _, _, _ = checkpointing.load_for_inference(workdir, config, ["infer_truncate_k"])
   assert fewer.truncate_k == 4
-  assert training.build_model(config.model).truncate_k == 16  # training keeps truncate_k
+  assert build_model(config.model).truncate_k == 16  # training keeps truncate_k
   ds = open_dataset("synthetic_lidar:2", split="test")
   ev = lambda m: evaluation.evaluate(m, params, ds, num_points=64, batch_size=2, num_iters=2)
   reference = saved.model.copy_and_resolve_references()
   reference.truncate_k = 4  # the same network built with 4 candidates directly
-  assert ev(fewer)["epe"] == ev(training.build_model(reference))["epe"] != ev(model)["epe"]
+  assert ev(fewer)["epe"] == ev(build_model(reference))["epe"] != ev(model)["epe"]
   with config.unlocked():
     config.model.infer_truncate_k = -1
   with pytest.raises(ValueError, match="infer_truncate_k"):
-    training.build_model(config.model, inference=True)
+    build_model(config.model, inference=True)
   # Checkpoints written before the fields existed compare as infer_truncate_k 0, no remat.
   old = saved.copy_and_resolve_references()
   with old.unlocked():
@@ -142,8 +151,8 @@ def test_cli_keeps_the_checkpoints_candidates_unless_given(workdir, tmp_path):
   for k in (4, 16):
     reference = config.model.copy_and_resolve_references()
     reference.truncate_k = k
-    state, _, _ = training.restore_checkpoint(run)
-    epes[k] = evaluation.evaluate(training.build_model(reference), state.params, ds,
+    state, _, _ = checkpointing.restore_checkpoint(run)
+    epes[k] = evaluation.evaluate(build_model(reference), state.params, ds,
                                   num_points=config.eval.num_points, batch_size=config.eval.batch_size,
                                   num_iters=config.eval.num_iters)["epe"]
   assert epes[4] != epes[16]
@@ -159,7 +168,7 @@ def test_cli_keeps_the_checkpoints_candidates_unless_given(workdir, tmp_path):
 def test_format_table_has_the_papers_columns():
   r = dict(epe=0.04421, acc_strict=83.8, acc_relax=95.98, outliers=26.37, angle=0.1234, pairs=3824,
            ms_per_pair=12.34)
-  lines = evaluation.format_table([("FT3D", r)]).splitlines()
+  lines = reporting.format_table([("FT3D", r)]).splitlines()
   assert [c.strip() for c in lines[0].strip("|").split("|")] == [
     "Dataset", "EPE(m)", "AccS(%)", "AccR(%)", "Outliers(%)", "θε(rad)", "pairs", "ms/pair"]
   assert [c.strip() for c in lines[2].strip("|").split("|")] == [
@@ -223,7 +232,7 @@ def test_bad_checkpoints_raise_checkpoint_error_naming_path(workdir, tmp_path):
 
 
 def test_no_checkpoint_and_none_shipped_is_a_clear_error(monkeypatch, tmp_path):
-  monkeypatch.setattr(evaluation, "SHIPPED_CHECKPOINT", tmp_path / "jaxflow_synthetic")
+  monkeypatch.setattr(checkpointing, "SHIPPED_CHECKPOINT", tmp_path / "jaxflow_synthetic")
   with pytest.raises(CheckpointError, match="no checkpoint given and no shipped checkpoint"):
     evaluation.evaluate_checkpoint(None, default.get_config("eval"), "synthetic_lidar:2")
 

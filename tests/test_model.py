@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import ablation, default, pvraft
-from jaxflow import geometry, losses, predict
+from jaxflow import inference, losses
 from jaxflow.import_pvraft import convert_state_dict, import_into
 from jaxflow.model import build_model
 from jaxflow.summary import parameter_counts
@@ -85,23 +85,8 @@ def test_scan_equals_python_loop(cell):
   variables = model.init(jax.random.PRNGKey(1), pc1, pc2, num_iters=1)
   scanned = model.apply(variables, pc1, pc2, num_iters=4, refine=False)["flows"]
 
-  def loop(mdl, pc1, pc2):
-    nbr1 = geometry.knn(pc1, pc1, mdl.knn)
-    nbr2 = geometry.knn(pc2, pc2, mdl.knn)
-    from jaxflow.correlation import truncated_correlation
-    corr, cand = truncated_correlation(mdl.feature_encoder(pc1, nbr1),
-                                       mdl.feature_encoder(pc2, nbr2), pc2, mdl.truncate_k)
-    context = mdl.context_encoder(pc1, nbr1)
-    half = context.shape[-1] // 2
-    h, inp, coords, flows = jnp.tanh(context[..., :half]), jax.nn.relu(context[..., half:]), pc1, []
-    for _ in range(4):
-      j = mdl.correlation(corr, cand, coords)
-      h, delta = mdl.update(h, inp, j, coords - pc1, pc1, nbr1)
-      coords = coords + delta
-      flows.append(coords - pc1)
-    return jnp.stack(flows, axis=1)
-
-  looped = model.apply(variables, pc1, pc2, method=loop)
+  # The same step as a Python loop: the scan's carry, broadcast parameters and output order.
+  looped = model.apply(variables, pc1, pc2, num_iters=4, refine=False, unroll=True)["flows"]
   np.testing.assert_allclose(scanned, looped, rtol=1e-5, atol=1e-6)
 
 
@@ -250,7 +235,7 @@ def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_referen
   import sys
 
   from conftest import ROOT
-  from jaxflow import training
+  from jaxflow import checkpointing
   source = tmp_path / "weights.npz"
   np.savez(source, **{k: v for k, v in pvraft_reference.items() if "/" in k})
   out = tmp_path / "imported"
@@ -258,7 +243,7 @@ def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_referen
     [sys.executable, "-m", "jaxflow.import_pvraft", str(source), "--out", str(out)],
     cwd=ROOT, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
-  state, config, step = training.restore_checkpoint(out)
+  state, config, step = checkpointing.restore_checkpoint(out)
   # With refinement weights: a trained stage 2, which evaluate.py and predict run refined.
   assert config.model.refine == "setconv" and config.train.stage == 2 and step == 0
   kernel = pvraft_reference["rsf/update_block.gru.convz.weight"][:, :, 0].T
@@ -270,10 +255,10 @@ def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_referen
   # difference (our exact kNN, not the official graphs), far from the official coarse flow (the
   # refinement of these random weights moves points by a median 0.57 m).
   ref = pvraft_reference
-  predictor = predict.load_predictor(out)
+  predictor = inference.load_predictor(out)
   assert predictor.refine
-  flow = predict.predict_flow(ref["pc1"][0], ref["pc2"][0], num_iters=ref["flows"].shape[1],
-                              predictor=predictor)
+  flow = inference.predict_flow(ref["pc1"][0], ref["pc2"][0], num_iters=ref["flows"].shape[1],
+                                predictor=predictor)
   to_refined = np.linalg.norm(flow - ref["refined"][0], axis=-1)
   to_coarse = np.linalg.norm(flow - ref["flows"][0, -1], axis=-1)
   assert np.median(to_refined) < 1e-2 and np.median(to_coarse) > 0.2, (
@@ -287,6 +272,6 @@ def test_import_without_refinement_predicts_the_coarse_flow(pvraft_reference, tm
   import_pvraft.main([str(source), "--out", str(tmp_path / "imported")])
   # A stage-1 checkpoint of the network without refinement: predict and evaluate.py return the
   # last iteration's flow (evaluation.model_predict_fn), the only one such a model has.
-  predictor = predict.load_predictor(tmp_path / "imported")
+  predictor = inference.load_predictor(tmp_path / "imported")
   assert not predictor.refine and predictor.config.train.stage == 1
   assert predictor.config.model.refine == "none" and predictor.model.refine == "none"

@@ -59,7 +59,7 @@ def start_and_signal(workdir, signum):
 
 
 def final_state(workdir):
-  state, _, step = training.restore_checkpoint(workdir)
+  state, _, step = checkpointing.restore_checkpoint(workdir)
   assert step == TOTAL_STEPS
   return jax.device_get(state)
 
@@ -99,7 +99,7 @@ def test_sigterm_saves_a_checkpoint_and_resume_matches(uninterrupted, tmp_path):
   step = int(line[0].split("at step ")[1].split(";")[0])
   assert EVERY <= step < TOTAL_STEPS
   assert "Traceback" not in err
-  state, _, restored_step = training.restore_checkpoint(tmp_path / "checkpoints" / str(step))
+  state, _, restored_step = checkpointing.restore_checkpoint(tmp_path / "checkpoints" / str(step))
   assert restored_step == step and int(state.step) == step
   run(tmp_path)
   assert_identical(final_state(tmp_path), uninterrupted)
@@ -121,15 +121,15 @@ def test_half_written_checkpoints_are_not_loaded(uninterrupted_dir, tmp_path):
   ckpts = checkpointing.Checkpoints(run_dir)
   assert ckpts.latest_step() == TOTAL_STEPS
   ckpts.close()
-  _, _, step = training.restore_checkpoint(workdir)
+  _, _, step = checkpointing.restore_checkpoint(workdir)
   assert step == TOTAL_STEPS
   # A numbered step folder without orbax's commit metadata (copied half-way): a clear error.
   bad = run_dir / str(TOTAL_STEPS + 2 * EVERY)
   shutil.copytree(run_dir / str(TOTAL_STEPS), bad)
   (bad / "_CHECKPOINT_METADATA").unlink()
   with pytest.raises(CheckpointError, match=rf"{bad}.*incomplete"):
-    training.restore_checkpoint(workdir)
-  _, _, step = training.restore_checkpoint(run_dir / str(TOTAL_STEPS))  # an explicit step
+    checkpointing.restore_checkpoint(workdir)
+  _, _, step = checkpointing.restore_checkpoint(run_dir / str(TOTAL_STEPS))  # an explicit step
   assert step == TOTAL_STEPS
 
 
@@ -163,10 +163,10 @@ def test_resume_with_another_recipe_is_refused_unless_asked(uninterrupted_dir, t
   asked = smoke_config(train__lr=2e-3, train__num_steps=extended, train__resume_with_new_recipe=True)
   training.train_and_evaluate(asked, workdir)
   written = json.loads((workdir / "config.json").read_text())
-  _, stored, step = training.restore_checkpoint(workdir)
+  _, stored, step = checkpointing.restore_checkpoint(workdir)
   assert step == extended and written["train"]["lr"] == stored.train.lr == 2e-3
   assert written["recipe_changes"] == [{"step": TOTAL_STEPS, "changed": ["train.lr: 0.001 != 0.002"]}]
   assert checkpointing.config_to_dict(stored)["recipe_changes"] == written["recipe_changes"]
   # The earlier checkpoints keep the recipe they were trained with.
-  _, older, _ = training.restore_checkpoint(workdir / "checkpoints" / str(TOTAL_STEPS))
+  _, older, _ = checkpointing.restore_checkpoint(workdir / "checkpoints" / str(TOTAL_STEPS))
   assert older.train.lr == 1e-3 and "recipe_changes" not in older

@@ -15,7 +15,7 @@ import pytest
 from flax import traverse_util
 
 from jaxflow.configs import default, stage2_synthetic
-from jaxflow import checkpointing, evaluation, training
+from jaxflow import checkpointing, evaluation, train_state, training
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError, DataError, NonFiniteError
 from jaxflow.model import build_model
@@ -53,9 +53,10 @@ def stage1(tmp_path_factory):
 def test_one_train_step():
   config = smoke()
   model = build_model(config.model)
-  tx = training.make_optimizer(config, config.train.num_steps)
+  tx = train_state.make_optimizer(config, config.train.num_steps)
   mesh = training.make_mesh()
-  state = training.create_train_state(training.init_params(model, config, jax.random.key(0)), tx)
+  state = train_state.create_train_state(
+    train_state.init_params(model, config, jax.random.key(0)), tx)
   before = flat(state.params)
   loader = BatchLoader(open_dataset(config.data.dataset), config.train.batch_size,
                        config.data.num_points, seed=0)
@@ -90,7 +91,7 @@ def test_smoke_run_writes_checkpoints_metrics_curve_and_eval(stage1):
     assert set(results[name]) >= {"epe", "acc_strict", "acc_relax", "outliers", "angle",
                                   "ms_per_pair"}
   # The restored checkpoint is the returned state.
-  restored, saved_config, step = training.restore_checkpoint(workdir)
+  restored, saved_config, step = checkpointing.restore_checkpoint(workdir)
   assert step == total and saved_config.train.stage == 1
   a, b = flat(restored.params), flat(state.params)
   assert all(np.array_equal(a[k], b[k]) for k in a)
@@ -104,7 +105,7 @@ def test_heldout_evaluation_during_training_matches_evaluating_the_checkpoint(st
   ds = open_dataset(config.eval.dataset, split=config.eval.split)
   model = build_model(config.model)
   for record in records:  # the checkpoints of those steps, evaluated afresh on the same pairs
-    state, _, _ = training.restore_checkpoint(workdir, step=record["step"])
+    state, _, _ = checkpointing.restore_checkpoint(workdir, step=record["step"])
     fresh = evaluation.evaluate(model, state.params, ds, num_points=config.eval.num_points,
                                 batch_size=config.eval.batch_size, num_iters=config.eval.num_iters)
     assert record["pairs"] == fresh["pairs"] == 4
@@ -141,7 +142,7 @@ def test_evaluator_reuses_results_only_for_the_same_parameter_arrays(stage1):
   assert evaluator(state.params) == first
   scaled = jax.tree.map(lambda x: x * 0.5, state.params)  # new arrays: evaluated afresh
   assert evaluator(scaled)["epe"] != first["epe"]
-  restored, _, _ = training.restore_checkpoint(workdir)  # equal values, other arrays
+  restored, _, _ = checkpointing.restore_checkpoint(workdir)  # equal values, other arrays
   again = evaluator(restored.params)
   assert again["epe"] == first["epe"] and again is not first
   # Zero flow on the kept pairs is the baseline evaluate_zero_flow samples afresh.
@@ -181,8 +182,8 @@ def test_stage1_init_from_warm_starts_every_parameter(stage1, tmp_path):
   stage1_dir, stage1_state = stage1
   config = smoke({"train.init_from": str(stage1_dir), "train.num_steps": 1, "eval.dataset": ""})
   model = build_model(config.model)
-  fresh = flat(training.init_params(model, config, jax.random.key(config.seed)))
-  loaded = flat(training._load_init_params(training.init_params(model, config,
+  fresh = flat(train_state.init_params(model, config, jax.random.key(config.seed)))
+  loaded = flat(training._load_init_params(train_state.init_params(model, config,
                                                                  jax.random.key(config.seed)),
                                             config))
   before = flat(stage1_state.params)
@@ -205,10 +206,10 @@ def test_stage1_init_from_warm_starts_every_parameter(stage1, tmp_path):
 
 def test_save_params_writes_a_workdir_that_loads(tmp_path):
   config = smoke()
-  params = training.init_params(build_model(config.model), config, jax.random.key(3))
+  params = train_state.init_params(build_model(config.model), config, jax.random.key(3))
   path = checkpointing.save_params(tmp_path / "imported", jax.device_get(params), config,
                                    note="imported from nowhere")
-  state, saved, step = training.restore_checkpoint(path)
+  state, saved, step = checkpointing.restore_checkpoint(path)
   assert step == 0 and not checkpointing.model_differences(saved, config)
   a, b = flat(state.params), flat(params)
   assert all(np.array_equal(a[k], b[k]) for k in a)
@@ -242,7 +243,7 @@ def test_nonfinite_loss_stops_naming_the_step_and_keeps_last_good_checkpoint(tmp
   assert "checkpoints/6" in str(info.value)
   steps = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit())
   assert steps == [6]
-  state, _, step = training.restore_checkpoint(tmp_path)
+  state, _, step = checkpointing.restore_checkpoint(tmp_path)
   assert step == 6 and int(state.step) == 6
   assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(jax.device_get(state.params)))
 
@@ -278,16 +279,17 @@ DATA_PARALLEL = textwrap.dedent("""
   import sys
   import jax, numpy as np
   from jaxflow.configs import default
-  from jaxflow import training
+  from jaxflow import train_state, training
   from jaxflow.data import BatchLoader, open_dataset
   from jaxflow.model import build_model
   assert jax.device_count() == 2, jax.devices()
   config = default.get_config("smoke")
   model = build_model(config.model)
-  tx = training.make_optimizer(config, config.train.num_steps)
+  tx = train_state.make_optimizer(config, config.train.num_steps)
   loader = BatchLoader(open_dataset(config.data.dataset), 2, config.data.num_points, seed=0)
   mesh = training.make_mesh()
-  state = training.create_train_state(training.init_params(model, config, jax.random.key(0)), tx)
+  state = train_state.create_train_state(
+    train_state.init_params(model, config, jax.random.key(0)), tx)
   step = training.jit_train_step(model, tx, config, mesh)
   state, metrics = step(state, training.device_batch(loader.batch(0), mesh))
   assert len(state.params["update"]["flow_head"]["out_conv2"]["bias"].sharding.device_set) == 2
@@ -301,10 +303,11 @@ def test_data_parallel_over_two_devices_matches_one_device(tmp_path):
   """One step with the batch split over 2 (forced host) devices gives the 1-device step."""
   config = smoke()
   model = build_model(config.model)
-  tx = training.make_optimizer(config, config.train.num_steps)
+  tx = train_state.make_optimizer(config, config.train.num_steps)
   loader = BatchLoader(open_dataset(config.data.dataset), 2, config.data.num_points, seed=0)
   mesh = training.make_mesh(jax.local_devices()[:1])
-  state = training.create_train_state(training.init_params(model, config, jax.random.key(0)), tx)
+  state = train_state.create_train_state(
+    train_state.init_params(model, config, jax.random.key(0)), tx)
   step = training.jit_train_step(model, tx, config, mesh)
   state, metrics = jax.device_get(step(state, training.device_batch(loader.batch(0), mesh)))
 

@@ -15,7 +15,8 @@ import pytest
 from flax import traverse_util
 
 from conftest import ROOT
-from jaxflow import checkpointing, training
+from jaxflow import checkpointing, train_state, training
+from jaxflow.model import build_model
 from jaxflow.configs import ablation, paper
 
 TOY_FIELDS = {"data.dataset": "synthetic_lidar:8", "data.num_points": 256, "train.num_steps": 2,
@@ -49,8 +50,8 @@ def toy(config, **fields):
 
 
 def check_stage2(stage1_dir, stage2_dir, refine: str):
-  first, config1, _ = training.restore_checkpoint(stage1_dir)
-  second, config2, step = training.restore_checkpoint(stage2_dir)
+  first, config1, _ = checkpointing.restore_checkpoint(stage1_dir)
+  second, config2, step = checkpointing.restore_checkpoint(stage2_dir)
   assert config1.train.stage == 1 and config2.train.stage == 2 and step == 2
   assert config2.model.encoder == config1.model.encoder and config2.model.cell == config1.model.cell
   assert config2.model.refine == refine
@@ -82,8 +83,8 @@ def test_two_stages_through_train_py(family, tmp_path):
 def test_stage2_in_process(family, tmp_path, capsys):
   stage1, stage2 = IN_PROCESS[family]
   config1 = toy(stage1())
-  model = training.build_model(config1.model)
-  params = training.init_params(model, config1, jax.random.key(7))
+  model = build_model(config1.model)
+  params = train_state.init_params(model, config1, jax.random.key(7))
   checkpointing.save_params(tmp_path / "stage1", params, config1)
   config = toy(stage2(), **{"train.init_from": str(tmp_path / "stage1")})
   training.train_and_evaluate(config, tmp_path / "stage2")

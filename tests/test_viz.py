@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from jaxflow import evaluation, viz
+from jaxflow import reporting, viz
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -75,7 +75,7 @@ def test_render_pair_and_error_write_pngs(tmp_path):
 
 
 def test_evaluate_render_calls_match(tmp_path, monkeypatch):
-  """evaluate.py --render goes through evaluation._render -> viz.render_pair, with the pair's name
+  """evaluate.py --render_dir goes through reporting.render_batch -> viz.render_pair, with the pair's name
   and the prediction's EPE over the pair's valid points in the picture."""
   pc1, pc2, flow = _pair()
   mask = np.arange(len(pc1)) % 3 > 0
@@ -85,7 +85,7 @@ def test_evaluate_render_calls_match(tmp_path, monkeypatch):
   figures = []
   monkeypatch.setattr(viz, "_save", lambda fig, path: (figures.append(fig), viz.plt.savefig(
     path, format="png"))[0])
-  evaluation._render(tmp_path, batch, pred[None])  # pylint: disable=protected-access
+  reporting.render_batch(tmp_path, batch, pred[None])
   assert _is_png(tmp_path / "ft3d_val_0000007.png")
   epe = np.mean([np.sqrt(((pred[i] - flow[i]) ** 2).sum()) for i in range(len(pc1)) if mask[i]])
   (fig,) = figures
