@@ -27,6 +27,7 @@ from tqdm import tqdm
 from jaxflow import checkpointing, distributed, methods
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import ConfigError
+from jaxflow.events import FirstPairs
 from jaxflow.metrics import METRICS, ThreeWayAverage, per_pair_metrics
 
 # The convergence counts of an optimising method, summed over pairs (names of `_Totals`).
@@ -157,26 +158,30 @@ class Evaluator:
   held-out evaluation during training): the model is compiled once, every call re-samples the same
   pairs (seeded, so the same batches; nothing is kept between calls: memory does not grow with the
   pairs), and a call with the very same parameter arrays as the previous one (jax arrays are
-  immutable) returns its results again (the end-of-run evaluation of a step just evaluated)."""
+  immutable) returns its results again (the end-of-run evaluation of a step just evaluated).
+  `keep` > 0: `samples` holds the first `keep` pairs of the last call with their flow
+  (events.FirstPairs: the pictures of the run's TensorBoard events)."""
 
   def __init__(self, model, dataset, *, num_points: int | None, batch_size: int,
-               num_iters: int = 32, refine: bool = False, seed: int = 0):
+               num_iters: int = 32, refine: bool = False, seed: int = 0, keep: int = 0):
     self.sampling = dict(dataset=dataset, batch_size=batch_size, num_points=num_points, seed=seed)
     eval_batches(**self.sampling)  # checks the arguments now (a generator would check them later)
     self.predict = model_predict_fn(model, num_iters, refine)
     self.output = "refined" if refine else "coarse"
     self.compiled = {}
     self._last = ([], None)  # (parameter leaves, results) of the previous call
+    self.keep, self.samples = keep, []
 
-  def __call__(self, params, on_batch=()) -> dict:
+  def __call__(self, params) -> dict:
     leaves = jax.tree.leaves(params)
     last_leaves, last_results = self._last
-    if (not on_batch and len(leaves) == len(last_leaves)
-        and all(a is b for a, b in zip(leaves, last_leaves))):
+    if len(leaves) == len(last_leaves) and all(a is b for a, b in zip(leaves, last_leaves)):
       return dict(last_results)
     batches, total = _process_batches(**self.sampling)
+    first = FirstPairs(self.keep)
     results = _run(self.predict, (distributed.local_copy(params),), batches,
-                   compiled=self.compiled, total=total, on_batch=on_batch)
+                   compiled=self.compiled, total=total, on_batch=[first] if self.keep else ())
+    self.samples = first.pairs
     results["output"] = self.output
     self._last = (leaves, dict(results))
     return results

@@ -27,10 +27,12 @@ class Interrupted(Exception):
 
 class MetricsLog:
   """Appends one JSON object per logged step to WORKDIR/metrics.jsonl (`enabled` False: on the
-  processes other than 0 of a multi-process run, which write nothing)."""
+  processes other than 0 of a multi-process run, which write nothing); `events`
+  (jaxflow.events.EventWriter): the record's numbers also as TensorBoard scalars PREFIX/NAME."""
 
-  def __init__(self, path: Path, resume_step: int, enabled: bool = True):
-    self.path, self.enabled = path, enabled
+  def __init__(self, path: Path, resume_step: int, enabled: bool = True, events=None,
+               prefix: str = "train"):
+    self.path, self.enabled, self.events, self.prefix = path, enabled, events, prefix
     if enabled and path.exists():  # drop lines logged after the checkpoint resumed (replayed now)
       keep = [l for l in path.read_text().splitlines() if l and json.loads(l)["step"] <= resume_step]
       path.write_text("".join(l + "\n" for l in keep))
@@ -39,6 +41,8 @@ class MetricsLog:
     if self.enabled:
       with self.path.open("a") as f:
         f.write(json.dumps(record) + "\n")
+      if self.events is not None:
+        self.events.scalars(record["step"], record, self.prefix)
 
 
 def finite(x) -> bool:

@@ -33,8 +33,12 @@ def written(workdir) -> str:
           "eval.json": "held-out evaluation (model and zero flow)",
           "learning_curve.png": "learning curve"}
   workdir = Path(workdir).absolute()
-  return "\n".join(f"  {workdir / name}  ({text})" for name, text in what.items()
-                   if (workdir / name).exists())
+  lines = [f"  {workdir / name}  ({text})" for name, text in what.items()
+           if (workdir / name).exists()]
+  if any(workdir.glob("events.out.tfevents.*")):
+    lines.append(f"  {workdir}/events.out.tfevents.*  (TensorBoard: tensorboard --logdir "
+                 f"{workdir})")
+  return "\n".join(lines)
 
 
 def main(argv):

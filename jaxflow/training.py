@@ -32,7 +32,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from tqdm import tqdm
 
-from jaxflow import checkpointing, curves, distributed, evaluation, reporting
+from jaxflow import checkpointing, curves, distributed, evaluation, events, reporting
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.losses import refinement_loss, sequence_loss
@@ -202,6 +202,7 @@ class Run:
   ckpts: checkpointing.Checkpoints
   recipe_changes: list  # [{"step": s, "changed": [...]}]: resumes with another recipe
   heldout: evaluation.Evaluator | None = None  # with eval.every: compiled once, reused at the end
+  tensorboard: events.EventWriter | None = None  # TensorBoard events beside metrics.jsonl
 
 
 def prepare(config: ml_collections.ConfigDict, workdir) -> Run:
@@ -227,7 +228,8 @@ def prepare(config: ml_collections.ConfigDict, workdir) -> Run:
     raise ConfigError(f"config.model does not make a model: {e}") from e
   workdir.mkdir(parents=True, exist_ok=True)
   ckpts = checkpointing.Checkpoints(workdir / "checkpoints", max_to_keep=config.train.max_to_keep)
-  return Run(config, workdir, mesh, model, tx, loader, total_steps, ckpts, [])
+  return Run(config, workdir, mesh, model, tx, loader, total_steps, ckpts, [],
+             tensorboard=events.EventWriter(workdir, enabled=distributed.is_primary()))
 
 
 def start_state(run: Run) -> tuple[TrainState, int]:
@@ -284,12 +286,14 @@ def train(run: Run, state: TrainState, start: int) -> TrainState:
   heldout, eval_log = None, None
   if config.eval.every:
     heldout = run.heldout = heldout_evaluator(config)
-    eval_log = MetricsLog(run.workdir / "eval_metrics.jsonl", start, enabled=primary)
+    eval_log = MetricsLog(run.workdir / "eval_metrics.jsonl", start, enabled=primary,
+                          events=run.tensorboard, prefix="eval")
   last_good = lambda: run.ckpts.steps() and run.ckpts.step_dir(run.ckpts.steps()[-1])
   bar = tqdm(total=run.total_steps, initial=start, desc=f"stage {config.train.stage}",
              unit="step", dynamic_ncols=True, mininterval=1.0, file=sys.stderr,
              disable=not primary)
-  pending = PendingMetrics(MetricsLog(run.workdir / "metrics.jsonl", start, enabled=primary),
+  pending = PendingMetrics(MetricsLog(run.workdir / "metrics.jsonl", start, enabled=primary,
+                                      events=run.tensorboard, prefix="train"),
                            learning_rate(config, run.total_steps), config.train.batch_size,
                            config.train.stage, bar, last_good)
   step = start
@@ -310,6 +314,7 @@ def train(run: Run, state: TrainState, start: int) -> TrainState:
           results = heldout(state.params)
           eval_log.write({"step": step, "stage": config.train.stage, "time": time.time(),
                           **{k: results[k] for k in (*METRICS, "pairs")}})
+          run.tensorboard.pictures(step, heldout.samples)
           bar.write(f"step {step}: held-out EPE {results['epe']:.4f} m "
                     f"({config.eval.dataset}, {results['pairs']} pairs)", file=sys.stderr)
           pending.pause(time.perf_counter() - started)  # pairs_per_s counts training alone
@@ -343,7 +348,12 @@ def finish(run: Run, state: TrainState):
     print(f"skipped {len(run.loader.broken)} unreadable sample(s) in training: "
           + ", ".join(map(str, run.loader.broken)), file=sys.stderr)
   if config.eval.dataset:
-    results = evaluate_run(state.params, config, run.heldout)
+    evaluator = run.heldout or heldout_evaluator(config)
+    results = evaluate_run(state.params, config, evaluator)
+    step = int(jax.device_get(state.step))
+    run.tensorboard.scalars(step, results["model"], "eval")
+    run.tensorboard.scalars(step, results["zero_flow"], "eval_zero_flow")
+    run.tensorboard.pictures(step, evaluator.samples)
     if distributed.is_primary():
       (run.workdir / "eval.json").write_text(json.dumps(results, indent=2) + "\n")
       print(reporting.format_table(
@@ -363,7 +373,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir) -> TrainState
     state = train(run, state, start)
   finally:
     run.ckpts.close()
-  finish(run, state)
+    run.tensorboard.flush()
+  try:
+    finish(run, state)
+  finally:
+    run.tensorboard.close()
   return state
 
 
@@ -374,7 +388,7 @@ def heldout_evaluator(config) -> evaluation.Evaluator:
   return evaluation.Evaluator(
     build_model(config.model, inference=True), ds, num_points=config.eval.num_points or None,
     batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
-    refine=config.train.stage == 2, seed=config.eval.seed,
+    refine=config.train.stage == 2, seed=config.eval.seed, keep=events.PICTURES,
   )
 
 

@@ -10,7 +10,7 @@ import pytest
 
 import numpy as np
 
-from jaxflow import cli, configfile, evaluation, train
+from jaxflow import checkpointing, cli, configfile, train
 from jaxflow.configs import default
 from jaxflow.data import read_points
 from jaxflow.errors import CheckpointError
@@ -151,7 +151,7 @@ def test_train_says_where_it_wrote(tmp_path):
 
 
 def test_predict_text_output_small_cloud_and_size_warning(tmp_path):
-  if not evaluation.SHIPPED_CHECKPOINT.exists():
+  if not checkpointing.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")
   rng = np.random.default_rng(0)
   np.save(tmp_path / "small.npy", rng.uniform(-5, 5, (100, 3)).astype(np.float32))
@@ -176,3 +176,54 @@ def test_dropped_rows_message_counts_points(tmp_path):
   assert len(points) == 4
   assert [str(w.message) for w in caught] == [
     f"{tmp_path / 'a.xyz'}: dropped 2 of 6 points with a non-finite value"]
+
+
+TOOLS = ("jaxflow.predict", "jaxflow.evaluate", "jaxflow.train", "jaxflow.nsfp", "jaxflow.summary",
+         "jaxflow.import_pvraft", "jaxflow.data.convert")
+
+
+def _popen(*args, stdout=subprocess.PIPE):
+  env = dict(os.environ, JAX_PLATFORMS="cpu",
+             PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+  return subprocess.Popen([sys.executable, *map(str, args)], cwd=REPO, env=env, stdout=stdout,
+                          stderr=subprocess.PIPE, text=True)
+
+
+def test_every_tool_has_a_help_that_exits_0_also_into_a_closed_pipe():
+  helps = {t: _popen("-m", t, "--help") for t in TOOLS}
+  helps.update({s: _popen(s, "--help") for s in ("evaluate.py", "train.py")})
+  closed = {t: _popen("-m", t, "--helpfull" if t in TOOLS[:5] else "--help") for t in TOOLS}
+  for p in closed.values():
+    p.stdout.close()  # `| head` that has read nothing: every write of the help fails
+  for tool, p in helps.items():
+    out, err = p.communicate(timeout=240)
+    assert p.returncode == 0, (tool, err[-2000:])
+    assert "Traceback" not in err, (tool, err)
+    first = out.strip().splitlines()[0]
+    assert len(first) > 20 and not first.startswith(("usage:", "USAGE:", "Flags")), (tool, first)
+    if tool in ("jaxflow.evaluate", "jaxflow.train", "evaluate.py", "train.py"):
+      for flag in ("--coordinator", "--num_processes", "--process_id"):
+        assert flag in out, (tool, flag)
+    if tool in ("jaxflow.predict", "jaxflow.evaluate", "jaxflow.nsfp"):
+      for flag in ("--method", "--iters", "--max_points", "--full", "--corr_chunk", "--seed",
+                   "--save_flows", "--steps", "--objective"):  # the shared flags, in both tools
+        assert flag in out, (tool, flag)
+  for tool, p in closed.items():
+    err = p.stderr.read()
+    p.wait(timeout=240)
+    assert p.returncode == 0 and "Traceback" not in err and "BrokenPipe" not in err, (tool, err)
+
+
+def test_old_flag_spellings_are_refused_naming_the_new_one():
+  cases = {("jaxflow.predict", "a.npy", "b.npy", "--save-flows", "d"): "--save-flows is now --save_flows",
+           ("jaxflow.predict", "a.npy", "b.npy", "--corr-chunk=4"): "--corr-chunk is now --corr_chunk",
+           ("jaxflow.predict", "a", "b", "--max-range", "9"): "--max-range is now --max_range",
+           ("jaxflow.evaluate", "--render", "d"): "--render is now --render_dir",
+           ("jaxflow.evaluate", "--max-points", "9"): "--max-points is now --max_points",
+           ("jaxflow.train", "--config", "configs/default.py:smoke", "--workdir", "w",
+            "--num-processes", "2"): "--num-processes is now --num_processes"}
+  procs = {args: _popen("-m", *args) for args in cases}
+  for args, p in procs.items():
+    out, err = p.communicate(timeout=240)
+    lines = err.strip().splitlines()
+    assert p.returncode == 2 and lines == [f"error: {cases[args]}"], (args, err)

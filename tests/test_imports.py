@@ -107,8 +107,9 @@ def test_no_module_over_400_lines():
 # once per module (each module imported into a fresh copy of that state).
 SIDE_EFFECTS = r"""
 import json, os, sys
-import absl.flags, matplotlib
-import jax, flax, optax, numpy, ml_collections  # noqa: F401  (paid once, before the forks)
+import absl.app, absl.flags, absl.logging, matplotlib  # absl.app and logging define their flags
+import jax, flax, optax, numpy, ml_collections, orbax.checkpoint, scipy.spatial  # noqa: F401
+# (third-party: paid once before the forks; orbax defines absl flags of its own at import)
 backend = dict.__getitem__(matplotlib.rcParams, "backend")
 flags = sorted(absl.flags.FLAGS)
 found = {}
@@ -154,3 +155,19 @@ def test_importing_a_module_changes_neither_matplotlib_nor_absl_flags():
   assert errors == {}
   effects = {n: r for n, r in found.items() if r["backend"] is not None or r["flags"]}
   assert set(effects) <= KNOWN_SIDE_EFFECTS, effects
+
+
+def test_a_point_file_reader_imports_neither_h5py_nor_the_scene_generator():
+  import os
+  import subprocess
+  import sys
+
+  code = ("import sys\n"
+          "from jaxflow.data.pointfiles import read_points\n"
+          "assert 'h5py' not in sys.modules and 'jaxflow.data.synthetic' not in sys.modules\n"
+          "from jaxflow.data import open_dataset\n"
+          "print(len(open_dataset('synthetic_lidar:2', split='val')))\n")
+  env = {**os.environ, "PYTHONPATH": str(PACKAGE.parent)}
+  done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                        env=env)
+  assert done.returncode == 0 and done.stdout.strip() == "2", done.stderr[-2000:]

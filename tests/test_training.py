@@ -15,10 +15,12 @@ import pytest
 from flax import traverse_util
 
 from jaxflow.configs import default, stage2_synthetic
-from jaxflow import checkpointing, evaluation, train_state, training
+from jaxflow import checkpointing, evaluation, events, train_state, training
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError, DataError, NonFiniteError
 from jaxflow.model import build_model
+
+STEPS = 24  # the last step of configs/default.py:smoke
 
 REPO = Path(__file__).absolute().parent.parent
 # Compiled programs are shared by the tests (and their subprocesses) through jax's persistent cache.
@@ -325,3 +327,26 @@ def test_data_parallel_over_two_devices_matches_one_device(tmp_path):
   # Adam's first update is ~lr * sign(gradient): allow a fraction of lr where a gradient is ~0.
   for i, leaf in enumerate(leaves):
     np.testing.assert_allclose(two[str(i)], leaf, rtol=0, atol=0.1 * config.train.lr)
+
+
+def test_tensorboard_events_hold_the_logged_metrics_and_pictures(stage1):
+  """The event files beside metrics.jsonl, read back from their records: every logged step's
+  losses, learning rate and pairs a second, the held-out metrics, and PNG views of val pairs."""
+  workdir, _ = stage1
+  found = events.read_events(workdir)
+  logged = [json.loads(l) for l in (workdir / "metrics.jsonl").read_text().splitlines()]
+  for name in ("loss", "grad_norm", "lr", "pairs_per_s"):
+    got = found[f"train/{name}"]
+    assert [s for s, _ in got] == [r["step"] for r in logged], name
+    np.testing.assert_allclose([v for _, v in got], [r[name] for r in logged], rtol=1e-6)
+  held = [json.loads(l) for l in (workdir / "eval_metrics.jsonl").read_text().splitlines()]
+  final = json.loads((workdir / "eval.json").read_text())["model"]
+  epe = found["eval/epe"]
+  assert [s for s, _ in epe] == [r["step"] for r in held] + [STEPS]
+  np.testing.assert_allclose([v for _, v in epe], [r["epe"] for r in held] + [final["epe"]],
+                             rtol=1e-6)
+  assert "eval_zero_flow/epe" in found
+  for tag in ("eval/pair_0", "eval/pair_1"):
+    pictures = found[tag]
+    assert [s for s, _ in pictures] == [r["step"] for r in held] + [STEPS]
+    assert all(png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 1000 for _, png in pictures)
