@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import ablation, default, pvraft
-from jaxflow import inference, losses
+from jaxflow import geometry, inference, losses
 from jaxflow.import_pvraft import convert_state_dict, import_into
 from jaxflow.model import build_model
 from jaxflow.summary import parameter_counts
