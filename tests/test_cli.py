@@ -199,8 +199,12 @@ def test_every_tool_has_a_help_that_exits_0_also_into_a_closed_pipe():
     out, err = p.communicate(timeout=240)
     assert p.returncode == 0, (tool, err[-2000:])
     assert "Traceback" not in err, (tool, err)
-    first = out.strip().splitlines()[0]
-    assert len(first) > 20 and not first.startswith(("usage:", "USAGE:", "Flags")), (tool, first)
+    paragraphs = out.strip().split("\n\n")
+    if paragraphs[0].startswith("usage:"):  # argparse's tools: the usage, then the description
+      paragraphs = paragraphs[1:]
+    first = paragraphs[0].strip()
+    assert len(first) > 20 and not first.startswith(("USAGE:", "Flags", "positional", "options")), (
+      tool, first)
     if tool in ("jaxflow.evaluate", "jaxflow.train", "evaluate.py", "train.py"):
       for flag in ("--coordinator", "--num_processes", "--process_id"):
         assert flag in out, (tool, flag)
