@@ -3,7 +3,9 @@ r"""Trains a jaxflow model and evaluates it (python -m jaxflow.train, jaxflow-tr
     python -m jaxflow.train --config configs/default.py --workdir runs/default [--config.FIELD=V]
     python -m jaxflow.train --config configs/default.py --print_config    # the fields, commented
 
-Rerunning the same command resumes from WORKDIR/checkpoints. SIGTERM/SIGINT save a checkpoint at
+The run writes its checkpoints, metrics.jsonl and TensorBoard event files (jaxflow.events:
+`tensorboard --logdir WORKDIR`) into WORKDIR. Rerunning the same command resumes from
+WORKDIR/checkpoints. SIGTERM/SIGINT save a checkpoint at
 the current step and exit with 128 + the signal number. `configs/NAME.py` is the package's config
 of that name when the working directory has none.
 """
