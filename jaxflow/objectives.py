@@ -103,6 +103,11 @@ def host_knn(query_BxNx3, points_BxMx3, k: int):
                            jax.lax.stop_gradient(points_BxMx3), vmap_method="sequential")
 
 
+def _squared_differences(a_BxCx3, b_BxMx3):
+  """|a - b|^2, B x C x M, summed coordinate by coordinate (no C x M x 3 temporary)."""
+  return sum((a_BxCx3[:, :, None, i] - b_BxMx3[:, None, :, i]) ** 2 for i in range(3))
+
+
 def device_knn(query_BxNx3, points_BxMx3, k: int, block: int = DEVICE_BLOCK_ELEMENTS):
   """`host_knn`'s indices by an exact brute-force search on the device: |q - p|^2 from the
   coordinate differences (not the matmul form of geometry.knn, whose rounding at tens of metres
@@ -112,7 +117,7 @@ def device_knn(query_BxNx3, points_BxMx3, k: int, block: int = DEVICE_BLOCK_ELEM
   m = points_BxMx3.shape[1]
 
   def select(q_BxCx3):
-    d_BxCxM = jnp.sum((q_BxCx3[:, :, None, :] - points_BxMx3[:, None, :, :]) ** 2, axis=-1)
+    d_BxCxM = _squared_differences(q_BxCx3, points_BxMx3)
     if k == 1:
       return jnp.argmin(d_BxCxM, axis=-1).astype(jnp.int32)[..., None]
     return jax.lax.top_k(-d_BxCxM, k)[1].astype(jnp.int32)
@@ -261,7 +266,7 @@ def device_distance_grid(pc2_BxMx3, cell: float, max_cells: int, margin: float,
   nodes_BxGx3 = jax.vmap(nodes)(origin_Bx3, cell_B, dims_Bx3)
 
   def nearest_sq(n_BxCx3):
-    return jnp.min(jnp.sum((n_BxCx3[:, :, None, :] - pc2_BxMx3[:, None, :, :]) ** 2, -1), -1)
+    return jnp.min(_squared_differences(n_BxCx3, pc2_BxMx3), axis=-1)
 
   sq_BxG = geometry.map_row_chunks(nearest_sq, (nodes_BxGx3,), max(1, block // max(m, 1)))
   inside_BxG = g_G[None] < jnp.prod(dims_Bx3, axis=1)[:, None]
