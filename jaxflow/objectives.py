@@ -1,13 +1,14 @@
 """The self-supervised objectives of flow optimisation (jaxflow.optimiser: NSFP, test time).
 
 One nearest-point search, one Chamfer term, one smoothness term, one distance transform:
-- `knn` / `nearest`: exact nearest points (Euclidean, a constant of the gradient), searched where the
-  program runs (`search`, SEARCHES): "host", scipy's k-d tree through a callback (O(N log M); the
-  tree of a cloud already searched is reused, `tree_cache_info`); "device", a brute-force search
-  in row blocks (O(N x M), memory ~ block x M, no matmul: the squared differences are exact in
-  float32 at any precision setting); "auto", the host on the CPU and the device elsewhere, decided
-  when XLA lowers the program for its platform (jax.lax.platform_dependent, as model.voxel_cells),
-  so a GPU or TPU program never leaves the device for a search. Costs: benchmarks/SEARCH.md.
+- `knn` / `nearest`: exact nearest points (Euclidean, a constant of the gradient), searched where
+  the program runs (`search`, SEARCHES): "host", scipy's k-d tree through a callback (O(N log M);
+  the tree of a cloud already searched is reused, `tree_cache_info`); "device", a brute-force
+  search in row blocks (O(N x M), memory ~ block x M; coordinate differences, no matmul, so no
+  precision setting or TF32 enters and far from the origin nothing cancels); "auto", the host on
+  the CPU and the device elsewhere, decided when XLA lowers the program for its platform
+  (jax.lax.platform_dependent, as model.voxel_cells), so a GPU or TPU program never leaves the
+  device for a search. Costs: benchmarks/SEARCH.md.
 - `chamfer_terms`: the truncated two-way Chamfer with the matches held fixed.
 - `smoothness`: mean L1 difference of the flow over pc1's k-nearest graph.
 - `distance_grid` / `grid_distance`: the distance to pc2 sampled once per pair on a voxel grid and
