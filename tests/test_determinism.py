@@ -83,6 +83,7 @@ PROGRAM = """
 """
 
 
+@pytest.mark.slow
 def test_the_cpu_gives_the_same_bits_in_two_fresh_processes():
   first, second = python(PROGRAM), python(PROGRAM)
   assert len(first) == 64 and first == second

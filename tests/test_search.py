@@ -113,6 +113,7 @@ def test_device_distance_grid_is_exact_and_the_host_one_within_a_cell():
     assert np.all(h >= exact - 2e-5) and np.all(h <= exact + size * 3**0.5 + 2e-5)
 
 
+@pytest.mark.slow
 def test_the_optimiser_gives_the_same_flow_on_either_search_path():
   """Forced onto the device path on the CPU, the exact objective's optimisation (NSFP's kind)
   follows the host's to float32 rounding: the same neighbours, the same steps."""
