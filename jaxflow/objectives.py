@@ -36,7 +36,9 @@ from jaxflow import geometry
 SEARCHES = ("auto", "host", "device")
 # The device search's block: query rows x points compared at once (x 3 float32 differences).
 DEVICE_BLOCK_ELEMENTS = 2**22
-TREE_CACHE_SIZE = 16  # k-d trees kept (LRU): pc1 and pc2 of a few pairs
+# k-d trees kept (LRU): pc1 and pc2 of up to 7 pairs searched in turn (a vmapped search calls the
+# host once a pair, each step), beside the warped cloud's, which is new at every search.
+TREE_CACHE_SIZE = 16
 
 
 def check_search(search: str, what: str = "search"):

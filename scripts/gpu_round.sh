@@ -9,6 +9,9 @@
 #                                               # and with --deterministic's flag, the methods
 #                                               # benchmark, device-vs-host nearest search
 #   DRY=1 ...device                             # the same steps at toy sizes (on the CPU too)
+#     (device: here `python3 -m pip download --no-deps -d .whl ml_collections==1.1.0`, then the
+#     device tool's run with command "bash scripts/gpu_round.sh device", carry [".whl"],
+#     timeout_s 600; results into benchmarks/ with the device: SEARCH.md, MODEL.md, METHODS.md)
 #   bash scripts/gpu_round.sh train MINUTES [--config.FIELD=VALUE ...]  # (resume and) train, pack
 #   bash scripts/gpu_round.sh eval [DATA]       # deciding pairs (synthetic_mix:100 val) for the
 #                                               # round and the shipped checkpoint, then the model
