@@ -36,8 +36,9 @@ from jaxflow import geometry
 SEARCHES = ("auto", "host", "device")
 # The device search's block: query rows x points compared at once (x 3 float32 differences).
 DEVICE_BLOCK_ELEMENTS = 2**22
-# k-d trees kept (LRU): pc1 and pc2 of up to 7 pairs searched in turn (a vmapped search calls the
-# host once a pair, each step), beside the warped cloud's, which is new at every search.
+# k-d trees kept (LRU). A vmapped search calls the host once a pair, each step, and every warped
+# cloud's tree is new: the fixed clouds' trees survive for batches of up to 4 pairs with NSFP's
+# four searches a step, 8 with two (a larger batch rebuilds them, as before the cache).
 TREE_CACHE_SIZE = 16
 
 
