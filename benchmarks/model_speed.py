@@ -68,6 +68,7 @@ def main():
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--train", action="store_true", help="also time a batch-2, 8-iteration step")
   parser.add_argument("--corr-chunk", type=int, default=0)
+  parser.add_argument("--precision", default=None, help="model.precision (default: the config's)")
   args = parser.parse_args()
 
   print(device_line())
@@ -75,6 +76,8 @@ def main():
   for name in args.configs.split(","):
     cfg = CONFIGS[name]()
     cfg.corr_chunk = args.corr_chunk
+    if args.precision:
+      cfg.precision = args.precision
     model = build_model(cfg)
     pc1 = jnp.asarray(rng.uniform(-10, 10, (1, args.points, 3)), jnp.float32)
     pc2 = pc1 + 0.1
@@ -82,7 +85,7 @@ def main():
     forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters))
     t = timed(forward, variables, pc1, pc2, repeats=args.repeats)
     mem = peak_memory_gib()
-    print(f"{name:>13}: inference 1 pair x {args.points} points x {args.iters} iters: "
+    print(f"{name:>13} ({cfg.precision}): inference 1 pair x {args.points} points x {args.iters} iters: "
           f"{1e3 * t:9.1f} ms" + (f", peak {mem:.2f} GiB" if mem is not None else ""))
     if args.train:
       tx = optax.adam(1e-3)

@@ -24,7 +24,7 @@ from typing import Any, Callable
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from jaxflow import configfile
+from jaxflow import configfile, determinism
 from jaxflow.errors import ConfigError, JaxflowError
 
 EXIT_USER_ERROR = 2
@@ -182,6 +182,11 @@ def _parse_flags(argv: list[str], config_names=()) -> list[str]:
     argv = flags.FLAGS(argv)
   except flags.Error as e:
     fail(str(e))
+  if flags.FLAGS.deterministic:  # before anything starts jax's backend (jaxflow.determinism)
+    try:
+      determinism.enable()
+    except ConfigError as e:
+      fail(str(e))
   if not flags.FLAGS["verbosity"].present:  # orbax and jax log every step of a save at INFO
     logging.set_verbosity(logging.WARNING)
   if flags.FLAGS.print_config:
@@ -216,6 +221,9 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
     define_flags()
   flags.DEFINE_bool("print_config", False, "Print the config (with the overrides given) field by "
                     "field, with each field's comment, and exit.")
+  flags.DEFINE_bool("deterministic", False, "Run-to-run identical results on a GPU too (XLA's "
+                    "deterministic GPU ops; slower). The CPU is deterministic already "
+                    "(docs/methods.md, Determinism).")
   for name in sorted(set(flags.FLAGS) - before):  # --help shows sys.argv[0]'s key flags
     if "." not in name:  # the config's fields: --print_config lists them
       flags.FLAGS.register_key_flag_for_module(sys.argv[0], flags.FLAGS[name])

@@ -71,13 +71,14 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise):
   flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.refine, grids=grids)
   if chosen.rigid_steps:
     labels = rigid_clusters.clusters(pc1_BxNx3, flow, chosen.clusters)
-    motions = rigid_clusters.fit(pc1_BxNx3, flow, labels, chosen.clusters.min_points)
+    motions = rigid_clusters.fit(pc1_BxNx3, flow, labels, chosen.clusters.min_points,
+                                 chosen.refine.precision)
     stage = dataclasses.replace(chosen.refine, model="rigid", steps=chosen.rigid_steps,
                                 learning_rate=chosen.rigid_learning_rate, smoothness=0.0)
     fitted = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions), grids)[0]
     if chosen.choose:
       fitted = rigid_clusters.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3,
-                                     chosen.refine.truncate)
+                                     chosen.refine.truncate, chosen.refine.search)
     flow = fitted
   if chosen.polish.steps:
     flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, chosen.polish)[0]

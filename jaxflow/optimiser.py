@@ -12,7 +12,10 @@ held fixed in between) or read from distance grids built once per pair (`objecti
 one-way pc1 + flow -> pc2 term, O(N) a step; jaxflow.objectives). Every pair runs its own
 early stopping (the loss has not fallen by `min_delta` for `patience` steps) and returns the flow of
 its lowest loss. The loop is one `lax.while_loop` over blocks of `refresh` scanned steps: no host
-round trip per step. Clouds are centred on pc1's mean first (the flow does not change with a
+round trip per step (`search` "auto": the nearest points are searched on the device on a GPU or
+TPU, by the host's k-d tree on the CPU; jaxflow.objectives). Every matmul runs at `precision`
+(exact float32 by default: a GPU's TF32 would move the points of a cluster tens of metres wide
+by centimetres). Clouds are centred on pc1's mean first (the flow does not change with a
 translation of both; far from the origin float32 would lose the centimetres).
 """
 
@@ -24,6 +27,7 @@ import jax.numpy as jnp
 import optax
 
 from jaxflow import objectives, rigid_clusters
+from jaxflow.layers import PRECISIONS
 
 MODELS = ("flow", "mlp", "rigid")
 OBJECTIVES = ("exact", "grid")
@@ -48,6 +52,8 @@ class Settings:
   width: int = 128  # model "mlp"
   depth: int = 8  # ReLU layers of the MLP (then a linear one)
   seed: int = 0  # the MLP's initial weights
+  precision: str = "highest"  # of every matmul (jaxflow.layers.PRECISIONS)
+  search: str = "auto"  # where nearest points are searched (jaxflow.objectives.SEARCHES)
 
   def __post_init__(self):
     if self.model not in MODELS:
@@ -65,6 +71,10 @@ class Settings:
         raise ValueError(f"optimiser {name} must be >= 0, got {getattr(self, name)!r}")
     if not self.cell > 0:
       raise ValueError(f"optimiser cell must be > 0, got {self.cell!r}")
+    if self.precision not in PRECISIONS:
+      raise ValueError(f"optimiser precision must be one of {', '.join(PRECISIONS)}, "
+                       f"got {self.precision!r}")
+    objectives.check_search(self.search, "optimiser search")
 
 
 def init_mlp(key, width: int, depth: int):
@@ -80,12 +90,13 @@ def init_mlp(key, width: int, depth: int):
   return layers
 
 
-def apply_mlp(layers, x_Nx3):
+def apply_mlp(layers, x_Nx3, precision: str = "highest"):
+  matmul = functools.partial(jnp.matmul, precision=jax.lax.Precision(precision))
   h = x_Nx3
   for w, b in layers[:-1]:
-    h = jax.nn.relu(h @ w + b)
+    h = jax.nn.relu(matmul(h, w) + b)
   w, b = layers[-1]
-  return h @ w + b
+  return matmul(h, w) + b
 
 
 def _init_params(settings: Settings, n: int):
@@ -101,27 +112,31 @@ def _init_params(settings: Settings, n: int):
   return params
 
 
-def _flow(params, init_Nx3, pc1_Nx3, clusters=()):
+def _flow(params, init_Nx3, pc1_Nx3, clusters, precision: str):
   # clusters: (labels N, R N x 3 x 3, centroid, translation) of rigid_clusters.fit
   if "rotation" in params:
     labels_N, r_Nx3x3, cen_Nx3, t_Nx3 = clusters
-    r_Nx3x3 = jnp.einsum("nij,njk->nik", r_Nx3x3, rigid_clusters.rodrigues(params["rotation"]))
-    return rigid_clusters.rigid_flow(pc1_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3 + params["translation"])
-  residual = params["flow"] if "flow" in params else apply_mlp(params["mlp"], pc1_Nx3)
+    r_Nx3x3 = jnp.einsum("nij,njk->nik", r_Nx3x3,
+                         rigid_clusters.rodrigues(params["rotation"], precision),
+                         precision=jax.lax.Precision(precision))
+    return rigid_clusters.rigid_flow(pc1_Nx3, labels_N, r_Nx3x3, cen_Nx3,
+                                     t_Nx3 + params["translation"], precision)
+  residual = (params["flow"] if "flow" in params
+              else apply_mlp(params["mlp"], pc1_Nx3, precision))
   return init_Nx3 + residual
 
 
 def _loss(params, pair, nbr_NxK, grids, match, settings: Settings):
   """The minimised loss of one pair; `match`: the held nearest points of the exact objective."""
   init_Nx3, pc1_Nx3, pc2_Mx3, clusters = pair
-  flow = _flow(params, init_Nx3, pc1_Nx3, clusters)
+  flow = _flow(params, init_Nx3, pc1_Nx3, clusters, settings.precision)
   warped = (pc1_Nx3 + flow)[None]
   if settings.objective == "grid":
     loss = objectives.grid_chamfer(grids[0], warped, settings.truncate)
   else:
     loss = objectives.chamfer_terms(warped, pc2_Mx3[None], match[:2], settings.truncate)
   if "inverse" in params:
-    back = warped - apply_mlp(params["inverse"], warped[0])[None]
+    back = warped - apply_mlp(params["inverse"], warped[0], settings.precision)[None]
     if settings.objective == "grid":
       loss = loss + objectives.grid_chamfer(grids[1], back, settings.truncate)
     else:
@@ -136,23 +151,24 @@ def _search(params, pair, settings: Settings):
   if settings.objective == "grid":
     return ()
   init_Nx3, pc1_Nx3, pc2_Mx3, clusters = pair
-  warped = (pc1_Nx3 + _flow(params, init_Nx3, pc1_Nx3, clusters))[None]
-  match = (objectives.nearest(warped, pc2_Mx3[None]), objectives.nearest(pc2_Mx3[None], warped))
+  warped = (pc1_Nx3 + _flow(params, init_Nx3, pc1_Nx3, clusters, settings.precision))[None]
+  near = functools.partial(objectives.nearest, search=settings.search)
+  match = (near(warped, pc2_Mx3[None]), near(pc2_Mx3[None], warped))
   if "inverse" in params:
-    back = warped - apply_mlp(params["inverse"], warped[0])[None]
-    match += (objectives.nearest(back, pc1_Nx3[None]), objectives.nearest(pc1_Nx3[None], back))
+    back = warped - apply_mlp(params["inverse"], warped[0], settings.precision)[None]
+    match += (near(back, pc1_Nx3[None]), near(pc1_Nx3[None], back))
   return match
 
 
 def _one_pair(pair, grids, settings: Settings):
   init_Nx3, pc1_Nx3, _, clusters = pair
   grids = jax.tree.map(lambda a: a[None], grids)  # the objectives take batches
-  nbr_NxK = (objectives.neighbours(pc1_Nx3[None], settings.neighbours)[0]
+  nbr_NxK = (objectives.neighbours(pc1_Nx3[None], settings.neighbours, settings.search)[0]
              if settings.smoothness else jnp.zeros((pc1_Nx3.shape[0], 1), jnp.int32))
   opt = optax.chain(optax.add_decayed_weights(settings.weight_decay),
                     optax.adam(settings.learning_rate))
   params = _init_params(settings, pc1_Nx3.shape[0])
-  flow_of = lambda params: _flow(params, init_Nx3, pc1_Nx3, clusters)
+  flow_of = lambda params: _flow(params, init_Nx3, pc1_Nx3, clusters, settings.precision)
   loss_grad = jax.value_and_grad(_loss)
   patience = settings.patience or settings.steps + 1
 
@@ -206,10 +222,10 @@ def distance_grids(pc1_BxNx3, pc2_BxMx3, settings: Settings):
   centre_Bx1x3 = _centre(pc1_BxNx3)
   margin = settings.truncate + 2 * settings.cell
   grids = (objectives.distance_grid(pc2_BxMx3 - centre_Bx1x3, settings.cell, settings.max_cells,
-                                    margin),)
+                                    margin, settings.search),)
   if settings.model == "mlp" and settings.cycle:
     return grids + (objectives.distance_grid(pc1_BxNx3 - centre_Bx1x3, settings.cell,
-                                             settings.max_cells, margin),)
+                                             settings.max_cells, margin, settings.search),)
   return grids + (grids[0],)  # unused
 
 

@@ -8,6 +8,8 @@ import dataclasses
 
 import numpy as np
 
+from jaxflow.rigid_clusters import kabsch_rotation
+
 STATIC_THRESHOLD = 0.1  # metres: a point within this of the rigid motion counts as static
 
 
@@ -41,9 +43,7 @@ def kabsch(src_Nx3, dst_Nx3, weights_N=None) -> Motion:
   w = w / w.sum()
   mu_src, mu_dst = w @ src, w @ dst
   cov = (src - mu_src).T @ ((dst - mu_dst) * w[:, None])
-  u, _, vt = np.linalg.svd(cov)
-  d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-  rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+  rotation = kabsch_rotation(cov[None])[0]  # the one Kabsch, NumPy float64 here
   return Motion(rotation, mu_dst - rotation @ mu_src)
 
 

@@ -4,14 +4,18 @@ FT3D and driving scenes are made of rigid pieces (DESIGN section 6). `clusters` 
 to those of its k nearest that are within `radius` m and whose flows differ by less than
 `flow_tolerance` m, and labels the connected components (min-label propagation, all in jit).
 `fit` gives each cluster the least-squares rigid motion of its points' flows (Kabsch): rotation R,
-centroid c and translation t, so that p -> R (p - c) + c + t. jaxflow.optimiser's `rigid` model then
+centroid c and translation t, so that p -> R (p - c) + c + t. `kabsch_rotation` is the one Kabsch
+of jaxflow (jaxflow.rigid.kabsch calls it too). Every matmul runs at `precision` (exact float32 by
+default). jaxflow.optimiser's `rigid` model then
 optimises a correction of each cluster's motion against pc2 (6 numbers a cluster, not 3 a point).
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxflow import geometry, objectives
 
@@ -23,6 +27,7 @@ class Settings:
   flow_tolerance: float = 0.3  # metres between the flows of linked points
   min_points: int = 8  # smaller clusters keep a pure translation (their mean flow)
   propagation: int = 64  # label-propagation rounds at most (each also jumps labels to labels)
+  search: str = "auto"  # where the kNN graph is searched (jaxflow.objectives.SEARCHES)
 
   def __post_init__(self):
     for name in ("neighbours", "min_points", "propagation"):
@@ -31,12 +36,13 @@ class Settings:
     for name in ("radius", "flow_tolerance"):
       if not getattr(self, name) >= 0:
         raise ValueError(f"rigid {name} must be >= 0, got {getattr(self, name)!r}")
+    objectives.check_search(self.search, "rigid search")
 
 
 def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings):
   """Cluster label of each point (B x N, int32): the smallest point index of its component."""
   k = min(settings.neighbours + 1, pc1_BxNx3.shape[1])
-  nbr_BxNxK = objectives.host_knn(pc1_BxNx3, pc1_BxNx3, k)
+  nbr_BxNxK = objectives.knn(pc1_BxNx3, pc1_BxNx3, k, settings.search)
   near = jnp.sum((geometry.gather(pc1_BxNx3, nbr_BxNxK) - pc1_BxNx3[:, :, None]) ** 2, -1)
   same = jnp.sum((geometry.gather(flow_BxNx3, nbr_BxNxK) - flow_BxNx3[:, :, None]) ** 2, -1)
   linked_BxNxK = (near <= settings.radius**2) & (same <= settings.flow_tolerance**2)
@@ -59,7 +65,24 @@ def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings):
   return jax.vmap(one)(nbr_BxNxK, linked_BxNxK)
 
 
-def fit(pc1_BxNx3, flow_BxNx3, labels_BxN, min_points: int):
+def kabsch_rotation(cov_Sx3x3, precision: str = "highest"):
+  """The rotations R (S x 3 x 3) minimising sum_i |R a_i - b_i|^2 given the cross-covariances
+  H = sum_i a_i b_i^T (S x 3 x 3) of centred source points a and target points b: with the SVD
+  H = U S V^T, R = V diag(1, 1, d) U^T, d = sign det(V U^T) (a reflection becomes the nearest
+  rotation; d = 1 for a degenerate H). NumPy in, NumPy out (rigid.kabsch, float64); a jax array
+  in, jax out (fit, inside jit)."""
+  if isinstance(cov_Sx3x3, np.ndarray):
+    xp, einsum = np, np.einsum
+  else:
+    xp, einsum = jnp, functools.partial(jnp.einsum, precision=jax.lax.Precision(precision))
+  u, _, vt = xp.linalg.svd(cov_Sx3x3)
+  d = xp.sign(xp.linalg.det(u) * xp.linalg.det(vt))  # det(V U^T), without a product
+  d = xp.where(d == 0, 1.0, d)
+  fix_Sx3 = xp.concatenate([xp.ones_like(d)[:, None].repeat(2, axis=1), d[:, None]], axis=1)
+  return einsum("sji,sj,skj->sik", vt, fix_Sx3, u)  # V diag(1, 1, d) U^T
+
+
+def fit(pc1_BxNx3, flow_BxNx3, labels_BxN, min_points: int, precision: str = "highest"):
   """Per label (B x N slots; slot l is cluster l): R (B x N x 3 x 3), centroid, translation, each
   the least-squares rigid motion p -> R (p - c) + c + t of the cluster's points onto p + flow."""
 
@@ -73,11 +96,7 @@ def fit(pc1_BxNx3, flow_BxNx3, labels_BxN, min_points: int):
     qcen_Nx3 = seg(q_Nx3) / safe
     a_Nx3, b_Nx3 = p_Nx3 - cen_Nx3[lab_N], q_Nx3 - qcen_Nx3[lab_N]
     cov_Nx3x3 = seg(a_Nx3[:, :, None] * b_Nx3[:, None, :])
-    u, _, vt = jnp.linalg.svd(cov_Nx3x3)
-    d = jnp.sign(jnp.linalg.det(jnp.einsum("nij,njk->nik", u, vt)))
-    d = jnp.where(d == 0, 1.0, d)
-    fix = jnp.concatenate([jnp.ones((n, 2)), d[:, None]], axis=1)
-    r_Nx3x3 = jnp.einsum("nji,nj,nkj->nik", vt, fix, u)  # V diag(1, 1, d) U^T
+    r_Nx3x3 = kabsch_rotation(cov_Nx3x3, precision)
     rigid = (count >= min_points)[:, None, None]
     r_Nx3x3 = jnp.where(rigid & jnp.all(jnp.isfinite(r_Nx3x3), axis=(1, 2), keepdims=True),
                         r_Nx3x3, jnp.eye(3))
@@ -86,7 +105,7 @@ def fit(pc1_BxNx3, flow_BxNx3, labels_BxN, min_points: int):
   return jax.vmap(one)(pc1_BxNx3, flow_BxNx3, labels_BxN)
 
 
-def rodrigues(w_Nx3):
+def rodrigues(w_Nx3, precision: str = "highest"):
   """Rotation matrices of rotation vectors (axis x angle), N x 3 x 3; exact and smooth at 0."""
   theta2 = jnp.sum(w_Nx3**2, axis=-1)[:, None, None]
   theta = jnp.sqrt(jnp.maximum(theta2, 1e-12))
@@ -97,22 +116,24 @@ def rodrigues(w_Nx3):
   zero = jnp.zeros_like(x)
   k = jnp.stack([jnp.stack([zero, -z, y], -1), jnp.stack([z, zero, -x], -1),
                  jnp.stack([-y, x, zero], -1)], -2)
-  return jnp.eye(3) + a * k + b * (k @ k)
+  return jnp.eye(3) + a * k + b * jnp.matmul(k, k, precision=jax.lax.Precision(precision))
 
 
-def rigid_flow(p_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3):
+def rigid_flow(p_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3, precision: str = "highest"):
   """Flow of each point under its cluster's motion p -> R (p - c) + c + t."""
-  moved = jnp.einsum("nij,nj->ni", r_Nx3x3[labels_N], p_Nx3 - cen_Nx3[labels_N])
+  moved = jnp.einsum("nij,nj->ni", r_Nx3x3[labels_N], p_Nx3 - cen_Nx3[labels_N],
+                     precision=jax.lax.Precision(precision))
   return moved + cen_Nx3[labels_N] + t_Nx3[labels_N] - p_Nx3
 
 
-def choose(labels_BxN, flows, pc1_BxNx3, pc2_BxMx3, truncate: float):
+def choose(labels_BxN, flows, pc1_BxNx3, pc2_BxMx3, truncate: float, search: str = "auto"):
   """Per cluster, the candidate flow (of `flows`, each B x N x 3) whose warped points lie nearest
   pc2 on average (truncated squared distance to the nearest pc2 point); ties go to the first."""
   costs = []
   for flow in flows:
     warped = pc1_BxNx3 + flow
-    sq_BxN = objectives.matched_sq(warped, pc2_BxMx3, objectives.nearest(warped, pc2_BxMx3))
+    sq_BxN = objectives.matched_sq(warped, pc2_BxMx3,
+                                  objectives.nearest(warped, pc2_BxMx3, search))
     per = jax.vmap(lambda c, lab: jax.ops.segment_sum(c, lab, num_segments=c.shape[0]))
     costs.append(per(jnp.minimum(sq_BxN, truncate**2), labels_BxN))
   best_BxN = jnp.argmin(jnp.stack(costs), axis=0)  # per cluster slot

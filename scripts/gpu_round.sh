@@ -4,6 +4,14 @@
 # device tool's folder; runs/gpu_out when unset), packed so that it comes back (at most 8 files).
 #
 #   bash scripts/gpu_round.sh bench             # voxel_cells, custom_gradients, model_speed
+#   bash scripts/gpu_round.sh device            # issue 29's round, one call of < 10 minutes: the
+#                                               # GPU-marked tests, model_speed at both precisions
+#                                               # and with --deterministic's flag, the methods
+#                                               # benchmark, device-vs-host nearest search
+#   DRY=1 ...device                             # the same steps at toy sizes (on the CPU too)
+#     (device: here `python3 -m pip download --no-deps -d .whl ml_collections==1.1.0`, then the
+#     device tool's run with command "bash scripts/gpu_round.sh device", carry [".whl"],
+#     timeout_s 600; results into benchmarks/ with the device: SEARCH.md, MODEL.md, METHODS.md)
 #   bash scripts/gpu_round.sh train MINUTES [--config.FIELD=VALUE ...]  # (resume and) train, pack
 #   bash scripts/gpu_round.sh eval [DATA]       # deciding pairs (synthetic_mix:100 val) for the
 #                                               # round and the shipped checkpoint, then the model
@@ -44,6 +52,51 @@ case "${1:-}" in
         --configs default_cpu,default_full,pvraft
     } 2>&1 | tee "$OUT/bench.txt"
     ;;
+  device)
+    # Each step has its own time limit and the whole stays under DEADLINE seconds: a step that
+    # fails or runs out is logged and the next one runs. Back in $OUT: device_round.txt (every
+    # step's output), methods.json, search.json; copy them into benchmarks/ with the device.
+    start=$SECONDS
+    deadline=${DEADLINE:-560}  # seconds: the device call's 600 less the install
+    log="$OUT/device_round.txt"
+    : >"$log"
+    step() {  # step NAME SECONDS COMMAND...
+      local name=$1 limit=$2 left=$((deadline - (SECONDS - start))) rc=0
+      shift 2
+      ((left < limit)) && limit=$left
+      if ((limit < 10)); then
+        echo "== $name: skipped (the round's ${deadline} s are spent)" | tee -a "$log"
+        return 0
+      fi
+      echo "== $name (limit ${limit} s): $*" | tee -a "$log"
+      timeout -s KILL "$limit" "$@" 2>&1 | tee -a "$log" || rc=$?
+      echo "== $name: exit $rc after $((SECONDS - start)) s in all" | tee -a "$log"
+    }
+    if [[ -n ${DRY:-} ]]; then  # toy sizes: checks the steps, measures nothing
+      points=256 sizes=512 iters=2 methods_args=(--synthetic 1 --num-points 256 --nsfp-steps 3)
+      speed_configs=default_cpu repeats=1
+    else
+      points=8192 sizes=8192,100000 iters=32 methods_args=(--synthetic 2 --nsfp-steps 1000)
+      speed_configs=default_full,pvraft repeats=3
+    fi
+    # In the order of the issue's asks: what does not fit in the deadline is what matters least.
+    step devices 20 bash -c "nvidia-smi -L || true; $PY -c 'import jax; print(jax.devices())'"
+    step gpu_tests 100 "$PY" -m pytest -q -n 0 -m gpu -rA tests/test_gpu.py
+    for precision in highest default; do
+      step "model_speed_$precision" 90 "$PY" -m benchmarks.model_speed --points "$points" \
+        --iters "$iters" --configs "$speed_configs" --precision "$precision" --repeats "$repeats"
+    done
+    step methods 150 "$PY" benchmarks/methods.py "${methods_args[@]}" --json "$OUT/methods.json"
+    step search 45 "$PY" -m benchmarks.search --sizes "$sizes" --repeats "$repeats" \
+      --json "$OUT/search.json"
+    # The cost of --deterministic: a training step with and without XLA's deterministic ops.
+    for flags in "" "--xla_gpu_deterministic_ops=true"; do
+      step "train_step_xla_flags=${flags:-none}" 60 env XLA_FLAGS="$flags" "$PY" -m \
+        benchmarks.model_speed --points "$points" --iters 8 --configs default_cpu --train \
+        --repeats "$repeats"
+    done
+    echo "device round: $((SECONDS - start)) s" | tee -a "$log"
+    ;;
   train)
     minutes=${2:?"train needs MINUTES"}
     shift 2
@@ -81,7 +134,7 @@ for path in sorted(pathlib.Path(sys.argv[1]).glob("*.json")):
 PY
     ;;
   *)
-    echo "usage: bash scripts/gpu_round.sh bench | train MINUTES [FLAGS] | eval [DATA]" >&2
+    echo "usage: bash scripts/gpu_round.sh bench | device | train MINUTES [FLAGS] | eval [DATA]" >&2
     exit 2
     ;;
 esac

@@ -1,6 +1,9 @@
-"""model.precision reaches every matmul of the network, its gradient and its kNN; the table of model
-fields (jaxflow.model_fields) covers the model and gives old checkpoints the defaults."""
+"""model.precision reaches every matmul of the network, its gradient and its kNN; every method of
+jaxflow.methods lowers with every matmul at its configured precision and, for a GPU, with no host
+callback; the table of model fields (jaxflow.model_fields) covers the model and gives old
+checkpoints the defaults."""
 
+import dataclasses
 import re
 
 import jax
@@ -8,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow import checkpointing, losses, model_fields
+from jaxflow import checkpointing, losses, methods, model_fields
 from jaxflow.configs import default
 from jaxflow.model import SceneFlowNet, build_model
 
@@ -136,3 +139,73 @@ def test_voxel_cells_setting_reaches_the_model_and_is_decided_per_platform():
                       ("auto", "cpu"): True, ("auto", "cuda"): False}
   with pytest.raises(ValueError, match="model.voxel_cells must be one of auto, scatter, compare"):
     build_model(tiny_model_config(voxel_cells="loop")).init(jax.random.key(0), pc1, pc2)
+
+
+# Every method of jaxflow.methods (a method added later is covered without a change here).
+
+
+def configured(chosen, **fields):
+  """A method's settings with every field named in `fields` (precision, search) replaced, in
+  every settings dataclass nested inside (the optimise method's stages, its clusters)."""
+  if not dataclasses.is_dataclass(chosen):
+    return chosen
+  changes = {}
+  for f in dataclasses.fields(chosen):
+    value = getattr(chosen, f.name)
+    if f.name in fields:
+      changes[f.name] = fields[f.name]
+    elif dataclasses.is_dataclass(value):
+      changes[f.name] = configured(value, **fields)
+  return dataclasses.replace(chosen, **changes)
+
+
+def traced_method(method, precision=None, **fields):
+  """jit(flow_fn(method)) traced on a toy pair, the network at `precision` (None: defaults)."""
+  pc1, pc2 = pair(n=64)
+  model = build_model(tiny_model_config(**({} if precision is None else {"precision": precision})))
+  params = jax.eval_shape(lambda: model.init(jax.random.key(0), pc1, pc2, num_iters=1))["params"]
+  network = lambda p, a, b: model.apply({"params": p}, a, b, num_iters=2)["flows"][:, -1]
+  chosen = methods.settings(method)
+  if precision is not None:
+    fields["precision"] = precision
+  chosen = configured(chosen, **fields)
+  return jax.jit(methods.flow_fn(method, network, chosen)).trace(params, pc1, pc2)
+
+
+@pytest.mark.parametrize("method", methods.METHODS)
+def test_every_dot_of_every_method_carries_the_precision(method):
+  """Lowered, not run: the whole method (the network, NSFP's MLPs and their gradients, the
+  optimise stages' Kabsch, Rodrigues and rigid flows) states HIGHEST on every dot by default, and
+  the configured precision when one is set."""
+  found = dot_precisions(traced_method(method).lower().as_text())
+  assert len(found) >= 40, len(found)  # the network alone holds 50, NSFP's two MLPs 89
+  assert set(found) == {"HIGHEST,HIGHEST"}, sorted(set(found))
+  found = dot_precisions(traced_method(method, "default").lower().as_text())
+  assert len(found) >= 40 and set(found) == {"DEFAULT,DEFAULT"}, sorted(set(found))
+
+
+def callbacks(text: str) -> list[str]:
+  return [line for line in text.splitlines() if "custom_call" in line and "callback" in line]
+
+
+@pytest.mark.parametrize("method", methods.METHODS)
+def test_no_host_round_trip_on_an_accelerator(method):
+  """With the search "auto" (the default), a program lowered for a GPU holds no host callback
+  (this CPU-only jax cannot even lower one for CUDA: the lowering itself would fail), and one
+  forced onto the device path on the CPU holds none either; lowered for the CPU it uses the host's
+  k-d tree (every method but the network)."""
+  traced = traced_method(method)
+  assert callbacks(traced.lower(lowering_platforms=("cuda",)).as_text()) == []
+  assert callbacks(traced_method(method, search="device").lower().as_text()) == []
+  assert bool(callbacks(traced.lower(lowering_platforms=("cpu",)).as_text())) == (
+    method != "network")
+
+
+def test_a_bad_precision_or_search_is_refused():
+  from jaxflow import optimiser, rigid_clusters
+  with pytest.raises(ValueError, match="optimiser precision must be one of highest"):
+    optimiser.Settings(precision="fp16")
+  with pytest.raises(ValueError, match="optimiser search must be one of auto, host, device"):
+    optimiser.Settings(search="gpu")
+  with pytest.raises(ValueError, match="rigid search must be one of auto, host, device"):
+    rigid_clusters.Settings(search="tree")

@@ -1,0 +1,58 @@
+"""The one Kabsch (rigid_clusters.kabsch_rotation) recovers known motions: through rigid.kabsch
+(NumPy, float64) and rigid_clusters.fit (jax, per cluster), against closed-form rotations."""
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxflow import rigid, rigid_clusters
+
+
+def rotation(axis, angle):
+  """Rodrigues' closed form: I + sin(a) K + (1 - cos(a)) K^2 for the unit axis' cross matrix K."""
+  x, y, z = np.asarray(axis, float) / np.linalg.norm(axis)
+  k = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+  return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def test_rigid_kabsch_recovers_a_known_motion_and_refuses_a_reflection():
+  rng = np.random.default_rng(0)
+  src = rng.uniform(-30, 30, (200, 3))  # tens of metres, as a sweep
+  r, t = rotation([0.2, -0.3, 1.0], np.radians(7.5)), np.array([1.2, -0.4, 0.05])
+  motion = rigid.kabsch(src, src @ r.T + t)
+  np.testing.assert_allclose(motion.rotation, r, atol=1e-12)
+  np.testing.assert_allclose(motion.translation, t, atol=1e-10)
+  np.testing.assert_allclose(motion.angle_deg, 7.5, atol=1e-9)
+  # Weights: the outliers given no weight do not move the fit.
+  dst = src @ r.T + t
+  dst[:20] += 5.0
+  w = np.r_[np.zeros(20), np.ones(180)]
+  np.testing.assert_allclose(rigid.kabsch(src, dst, w).rotation, r, atol=1e-12)
+  # A mirror image: the nearest proper rotation (det +1), never the reflection.
+  mirrored = src * [1, 1, -1]
+  fitted = rigid.kabsch(src, mirrored).rotation
+  np.testing.assert_allclose(np.linalg.det(fitted), 1.0, atol=1e-12)
+  np.testing.assert_allclose(fitted @ fitted.T, np.eye(3), atol=1e-12)
+
+
+def test_fit_recovers_each_clusters_motion_with_the_same_kabsch():
+  rng = np.random.default_rng(1)
+  pc1 = rng.uniform(-20, 20, (90, 3)).astype(np.float32)
+  labels = np.repeat([0, 30, 60], 30)  # slot l is cluster l (the smallest index of its points)
+  motions = [(rotation([0, 0, 1], np.radians(5)), [0.5, 0, 0]),
+             (rotation([1, 1, 0], np.radians(-3)), [0, 1.0, 0.2]), (np.eye(3), [0.3, 0.3, 0.0])]
+  flow = np.zeros_like(pc1)
+  for (r, t), start in zip(motions, (0, 30, 60)):
+    p = pc1[start:start + 30].astype(np.float64)
+    c = p.mean(0)
+    flow[start:start + 30] = (p - c) @ r.T + c + t - p
+  r_got, cen, t_got = (np.asarray(a[0]) for a in rigid_clusters.fit(
+    jnp.asarray(pc1[None]), jnp.asarray(flow[None]), jnp.asarray(labels[None]), 8))
+  for (r, t), slot in zip(motions, (0, 30, 60)):
+    np.testing.assert_allclose(r_got[slot], r, atol=2e-5)
+    np.testing.assert_allclose(t_got[slot], t, atol=2e-4)
+    np.testing.assert_allclose(cen[slot], pc1[slot:slot + 30].mean(0), atol=1e-4)
+  np.testing.assert_array_equal(r_got[1], np.eye(3))  # an empty slot: the identity
+  # The NumPy and jax paths of the one implementation agree on the same covariances.
+  cov = rng.normal(size=(5, 3, 3))
+  np.testing.assert_allclose(np.asarray(rigid_clusters.kabsch_rotation(jnp.asarray(cov))),
+                             rigid_clusters.kabsch_rotation(cov), atol=1e-5)
