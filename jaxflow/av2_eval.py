@@ -90,7 +90,8 @@ def pair_labels(pred_Nx3, gt_Nx3, rigid_Nx3, category_N, ego_xy_Nx2, valid_N) ->
 
 def breakdown_sums(labels: dict) -> np.ndarray:
   """len(SUBSETS) x len(_SUMS): per subset its point count, the sums of the four metrics and the
-  TP / TN / FP / FN of the dynamic segmentation, over the valid points of one pair (`pair_labels`)."""
+  TP / TN / FP / FN of the dynamic segmentation, over the valid points of one pair
+  (`pair_labels`)."""
   v = labels["is_valid"]
   per_point = point_metrics(labels["pred"][v], labels["gt"][v])
   fg, dyn, close = labels["category"][v] != 0, labels["is_dynamic"][v], labels["is_close"][v]

@@ -34,6 +34,9 @@ def _define_flags():
   flags.DEFINE_string("save-flows", None, "Write the flow of every pair into this folder, one "
                       "NAME.npy per pair (jaxflow.export; the evaluated points: with "
                       "--config.eval.num_points=0 every point of pc1).")
+  flags.DEFINE_string("submission", None, "Write the AV2 challenge's files into this folder "
+                      "(jaxflow.submission: <log_id>/<timestamp_ns>.feather, annotations in "
+                      "DIR_annotations; opensf datasets, --config.eval.num_points=0).")
   flags.DEFINE_enum("method", "network", ["network", "nsfp", "optimise"],
                     "network: the paper's protocol; nsfp: the NSFP baseline (no checkpoint); "
                     "optimise: the network's flow refined per pair (docs/methods.md).")
@@ -50,7 +53,8 @@ def main(argv):
   model_fields = evaluation.requested_model_fields(FLAGS["config"])
   evaluation.evaluate_checkpoint(FLAGS.checkpoint, FLAGS.config, FLAGS.dataset, FLAGS.split,
                                  model_fields, FLAGS.json, FLAGS.render,
-                                 FLAGS["save-flows"].value, FLAGS.method, FLAGS.steps)
+                                 FLAGS["save-flows"].value, FLAGS.method, FLAGS.steps,
+                                 submission_dir=FLAGS.submission)
 
 
 def run():

@@ -24,7 +24,8 @@ import numpy as np
 
 from tqdm import tqdm
 
-from jaxflow import checkpointing, distributed, export, methods, model_fields, tables, test_time
+from jaxflow import (av2_eval, checkpointing, distributed, export, methods, model_fields,
+                     submission, tables, test_time)
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.metrics import METRICS, ThreeWayAverage, format_three_way, per_pair_metrics
@@ -80,17 +81,21 @@ def _process_batches(dataset, batch_size: int, num_points: int | None, seed: int
   return batches, sum(min(batch_size, len(dataset) - s) for s in starts)
 
 
-def _run(predict, args, batches, render_dir=None, compiled=None, total=None, save_dir=None) -> dict:
+def _run(predict, args, batches, render_dir=None, compiled=None, total=None, save_dir=None,
+         on_pair=None) -> dict:
   """Averages the metrics of `predict(*args, pc1, pc2)` over the pairs of `batches` (this
   process's; the sums are added over processes). `compiled` caches the compiled `predict` by input
   shapes (compiled before timing) across calls; `total`: the pairs expected, for the progress bar.
-  Batches with ego-motion flow and labels add "three_way" (metrics.ThreeWayAverage); save_dir:
+  Batches with ego-motion flow and labels add "three_way_local" (OpenSceneFlow's local reading,
+  metrics.ThreeWayAverage) and, with av2 labels, "av2" and "bucketed" (the official readings,
+  av2_eval.Official; on_pair(name, labels) gets each pair's, e.g. SubmissionWriter.add); save_dir:
   every pair's flow (jaxflow.export). A `predict` that returns (flow, info) (an optimising method's
   `with_info`) adds "convergence": the pairs it optimised, those whose flow went non-finite (the
   starting flow is kept), those whose early stopping fired, and the mean steps."""
   compiled = {} if compiled is None else compiled
   convergence = np.zeros(4)  # pairs with info, non-finite, early-stopped, steps
   three_way = ThreeWayAverage()
+  official = av2_eval.Official(on_pair)
   saver = export.FlowSaver(save_dir) if save_dir is not None else None
   sums = dict.fromkeys(METRICS, 0.0)
   pairs, seconds = 0, 0.0
@@ -118,6 +123,7 @@ def _run(predict, args, batches, render_dir=None, compiled=None, total=None, sav
         sums[k] += float(np.sum(np.asarray(per_pair[k], np.float64) * valid))
       pairs += int(valid.sum())
       three_way.add(pred, batch)
+      official.add(pred, batch)
       if saver is not None:
         saver.add(batch, pred)
       bar.update(int(valid.sum()))
@@ -127,10 +133,12 @@ def _run(predict, args, batches, render_dir=None, compiled=None, total=None, sav
   totals, (pairs, seconds), convergence = summed[:len(METRICS)], summed[-6:-4], summed[-4:]
   sums, pairs = dict(zip(METRICS, totals)), int(pairs)
   three_way.reduce(distributed.sum_over_processes)
+  official.reduce(distributed.sum_over_processes)
   if pairs == 0:
     raise ConfigError("the evaluation dataset holds no pairs")
   results = {k: sums[k] / pairs for k in METRICS}
-  results.update(pairs=pairs, ms_per_pair=1000.0 * seconds / pairs, **three_way.results())
+  results.update(pairs=pairs, ms_per_pair=1000.0 * seconds / pairs, **three_way.results(),
+                 **official.results())
   if convergence[0]:
     results["convergence"] = {"pairs": int(convergence[0]), "non_finite": int(convergence[1]),
                               "early_stopped": int(convergence[2]),
@@ -145,7 +153,7 @@ def _output_name(refine: bool, optimise: test_time.Settings) -> str:
 def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int, num_iters: int = 32,
              refine: bool = False, seed: int = 0, render_dir=None,
              optimise: test_time.Settings = test_time.Settings(), method: str = "network",
-             method_settings=None, save_flows=None) -> dict:
+             method_settings=None, save_flows=None, on_pair=None) -> dict:
   """Metrics of the model's flow on every pair of `dataset`, with pairs and ms_per_pair (the
   test-time optimisation included when `optimise.steps` > 0; `method`: jaxflow.methods);
   save_flows: a folder that receives the flow of every pair (jaxflow.export; the points evaluated:
@@ -154,7 +162,7 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
                              with_info=method != "network")
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
   results = _run(predict, (distributed.local_copy(params),), batches, render_dir, total=total,
-                 save_dir=save_flows)
+                 save_dir=save_flows, on_pair=on_pair)
   results["output"] = _output_name(refine, optimise)
   results.update(methods.describe(method, method_settings or methods.settings(method)))
   if optimise.steps:
@@ -262,7 +270,7 @@ def load_model(checkpoint=None, config: ml_collections.ConfigDict | None = None,
 def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: str | None = None,
                         split: str | None = None, model_fields=(), json_path=None,
                         render_dir=None, save_flows=None, method: str = "network",
-                        steps: int | None = None) -> dict:
+                        steps: int | None = None, submission_dir=None) -> dict:
   """Evaluates a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
   The model comes from the checkpoint as `load_model` gives it; `config.eval` sets points (0: whole
@@ -280,18 +288,23 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
     model, params, _, step, refine = load_model(checkpoint, config, model_fields)
     checkpoint = checkpoint or SHIPPED_CHECKPOINT
   ds = open_dataset(dataset, split=split)
+  writer = submission_dir and submission.SubmissionWriter(submission_dir, config.eval.num_points, ds)
   results = evaluate(model, params, ds, num_points=config.eval.num_points or None,
                      batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
                      refine=refine, seed=config.eval.seed, render_dir=render_dir,
                      optimise=test_time.settings_from_config(config.eval), method=method,
-                     method_settings=chosen, save_flows=save_flows)
+                     method_settings=chosen, save_flows=save_flows, on_pair=writer and writer.add)
   results.update(dataset=dataset, split=split, checkpoint=checkpoint and str(checkpoint), step=step,
                  num_points=config.eval.num_points, num_iters=config.eval.num_iters)
   if not distributed.is_primary():
     return results
   print(format_table([(f"{dataset} ({split})", results)]))
-  if "three_way" in results:
+  if "av2" in results:
+    print(av2_eval.format_results(f"{dataset} ({split})", results))
+  elif "three_way_local" in results:
     print(format_three_way([(f"{dataset} ({split})", results)]))
+  if writer:
+    print(writer.summary() + (f"\nnote: {writer.note}" if writer.note else ""), file=sys.stderr)
   note = methods.evaluation_note(method, results.get("convergence"))
   if note:
     print(f"note: {note}", file=sys.stderr)

@@ -154,7 +154,7 @@ def test_three_way_epe_matches_a_loop_over_points():
 def test_evaluation_averages_three_way_over_pairs_leaving_out_empty_classes(opensf_dir):
   root, _ = opensf_dir
   ds = open_dataset(f"opensf:{root}", "val")
-  got = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=2)["three_way"]
+  got = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=2)["three_way_local"]
   per_pair = [three_way_epe(np.zeros_like(b["flow"][0]), b["flow"][0], b["rigid_flow"][0],
                             b["foreground"][0], b["mask"][0]) for b in eval_batches(ds, 1, 64)]
   assert np.isnan(per_pair[2]["fd"]) and not np.isnan(per_pair[0]["fd"])  # log_b: no mover
@@ -162,7 +162,7 @@ def test_evaluation_averages_three_way_over_pairs_leaving_out_empty_classes(open
   assert got["fd"] == pytest.approx((per_pair[0]["fd"] + per_pair[1]["fd"]) / 2, rel=1e-6)
   for k in ("fs", "bs", "mean"):
     assert got[k] == pytest.approx(np.mean([p[k] for p in per_pair]), rel=1e-6)
-  assert "three_way" not in evaluation.evaluate_zero_flow(
+  assert "three_way_local" not in evaluation.evaluate_zero_flow(
     open_dataset("synthetic_lidar:2", "test"), num_points=64, batch_size=1)
 
 
@@ -176,8 +176,8 @@ def test_conversion_keeps_the_ego_motion_and_labels(opensf_dir, tmp_path):
     for k in ("pc1", "pc2", "flow", "mask", "rigid_flow", "foreground", "name"):
       np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
   kwargs = dict(num_points=64, batch_size=1)
-  assert (evaluation.evaluate_zero_flow(converted, **kwargs)["three_way"]
-          == evaluation.evaluate_zero_flow(source, **kwargs)["three_way"])
+  assert (evaluation.evaluate_zero_flow(converted, **kwargs)["three_way_local"]
+          == evaluation.evaluate_zero_flow(source, **kwargs)["three_way_local"])
 
 
 @pytest.fixture(scope="module")
@@ -207,7 +207,7 @@ def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoi
   assert proc.returncode == 0, proc.stderr[-3000:]
   assert "three-way" in proc.stdout and "EPE FD" in proc.stdout
   results = json.loads(out.read_text())
-  assert results["three_way"]["pairs"] == 3 and results["three_way"]["mean"] > 0
+  assert results["three_way_local"]["pairs"] == 3 and results["three_way_local"]["mean"] > 0
   ds = open_dataset(f"opensf:{root}", "val")
   assert sorted(p.name for p in flows.iterdir()) == sorted(
     export.flow_stem(p.name) + ".npy" for p in ds)

@@ -51,12 +51,12 @@ from jaxflow.data.pointfiles import MIN_POINTS
 from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.errors import DataError
 
-DEFAULTS = {"ground": "remove", "max_range": 35.0, "frame": "ego", "region": "disc", "lidar": "auto",
-            "calibration": ""}
-CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera"), "region": ("disc", "challenge"),
-           "lidar": ("auto", "ego", "sensor")}
+DEFAULTS = {"ground": "remove", "max_range": 35.0, "frame": "ego", "region": "disc",
+            "lidar": "auto", "calibration": ""}
+CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera"),
+           "region": ("disc", "challenge"), "lidar": ("auto", "ego", "sensor")}
 CHALLENGE_BOX_M = 50.0  # the challenge's points: non-ground, |x|, |y| <= 50 m (ego frame)
-DECISIVE_ROTATION = 5e-4  # rad (0.03 degrees): an ego rotation that tells the two lidar frames apart
+DECISIVE_ROTATION = 5e-4  # rad (0.03 degrees): an ego rotation that tells the lidar frames apart
 TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward)
 
 
@@ -83,8 +83,9 @@ def parse_spec(arg: str) -> tuple[str, dict]:
     else:
       options[key] = value
   if options["lidar"] == "sensor" and not options["calibration"]:
-    raise DataError(f"opensf:{arg}", "lidar=sensor needs calibration=AV2_DIR (the AV2 split the h5 "
-                    "files were made from: AV2_DIR/<log>/calibration/egovehicle_SE3_sensor.feather)")
+    raise DataError(f"opensf:{arg}", "lidar=sensor needs calibration=AV2_DIR (the AV2 split the "
+                    "h5 files were made from: AV2_DIR/<log>/calibration/"
+                    "egovehicle_SE3_sensor.feather)")
   return root, options
 
 
@@ -188,6 +189,11 @@ class OpenSceneFlow(Dataset):
       frame = self.options["lidar"]
       if frame == "auto":
         frame = _detect_lidar_frame(f, path)
+        if frame == "sensor" and not self.options["calibration"]:
+          raise DataError(path, "'lidar' is in the sensor frame (OpenSceneFlow's extract_av2.py "
+                          "since its commit 2bd9036; its flow is in the ego frame) and the file "
+                          "does not hold the sensor's extrinsic: give calibration=AV2_DIR, the AV2 "
+                          "split it was made from")
       self._to_ego[path] = (np.eye(4) if frame == "ego"
                             else read_up_lidar_extrinsic(self.options["calibration"], path))
     return self._to_ego[path]
@@ -206,7 +212,7 @@ def _reopen(root, split, options):
 
 
 def sweep_id(name: str) -> tuple[str, int]:
-  """av2's (log_id, timestamp_ns) of an opensf pair name FILE:TIMESTAMP (log_id: the file's stem)."""
+  """av2's (log_id, timestamp_ns) of an opensf pair name FILE:TIMESTAMP (log_id: the file stem)."""
   file, _, stamp = str(name).rpartition(":")
   if not file or not stamp.lstrip("-").isdigit():
     raise DataError(name, "not an opensf pair name (expected <log>.h5:<timestamp_ns>)")
