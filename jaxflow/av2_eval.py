@@ -213,8 +213,9 @@ class Official:
     return {"av2": av2, "bucketed": {**bucketed_results(self.buckets), "pairs": self.pairs}}
 
 
-def format_results(name: str, results: dict) -> str:
-  """The av2 breakdown and the bucketed EPE of `results` (Official.results()) as two tables."""
+def format_results(results: dict) -> str:
+  """The av2 breakdown (count-weighted over the split) and the bucketed EPE of `results`
+  (Official.results()) as two tables."""
   from jaxflow import tables  # pylint: disable=import-outside-toplevel
 
   r, rows = results["av2"], []
@@ -224,12 +225,11 @@ def format_results(name: str, results: dict) -> str:
                  f"{r[f'Angle Error/{c}/{m}']:.4f}"))
   rows.append(("EPE 3-Way Average", f"{r['EPE 3-Way Average']:.4f}", "", "", "", "", ""))
   rows.append(("Dynamic IoU", f"{r['Dynamic IoU']:.4f}", "", "", "", "", ""))
-  head = (f"av2 official ({name}, {r['pairs']} pairs, {r['points']} points, count-weighted)",
-          "EPE", "EPE Close", "EPE Far", "AccS", "AccR", "Angle")
+  head = (f"av2 official: {r['pairs']} pairs, {r['points']} points", "EPE", "EPE Close",
+          "EPE Far", "AccS", "AccR", "Angle")
   b = results["bucketed"]
   brows = [(k, f"{v['static_epe']:.4f}", f"{v['dynamic_norm_epe']:.4f}", str(v["points"]))
            for k, v in b["classes"].items()]
   brows.append(("mean", f"{b['static_epe']:.4f}", f"{b['dynamic_norm_epe']:.4f}", ""))
-  bhead = ("bucketed (2024, max(|x|,|y|) < 35 m)", "static EPE", "dynamic normalised EPE",
-           "points")
+  bhead = ("bucketed 2024 (35 m box)", "static EPE", "dynamic normalised EPE", "points")
   return tables.markdown_table(head, rows) + "\n" + tables.markdown_table(bhead, brows)
