@@ -69,7 +69,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import evaluation, export, geometry, ground, methods, test_time
+from jaxflow import evaluation, export, geometry, ground, methods, submission, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -303,8 +303,7 @@ def _define_flags():
                      "horizontal distance (m) of the sensor; 0: all.")
   flags.DEFINE_string("save-flows", None, "Also write the flow into this folder as NAME.npy, NAME "
                       "made from PC1,PC2 (jaxflow.export; the naming of evaluate.py --save-flows).")
-  flags.DEFINE_string("submission", None, "--lidar: also write the flow in the AV2 challenge's "
-                      "layout, DIR/<log_id>/<timestamp_ns>.feather (jaxflow.submission).")
+  flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
   flags.DEFINE_enum("method", "optimise", list(methods.METHODS), "optimise (default): the network's "
                     "flow refined per pair; network: the network alone; nsfp: the NSFP baseline, no "
                     "checkpoint (docs/methods.md).")
@@ -336,8 +335,6 @@ def main(argv):
     raise ConfigError(f"--max-points must be >= 0, got {max_points}")
   if not FLAGS.out and not FLAGS["save-flows"].value and not FLAGS.submission:
     raise ConfigError("give --out FLOW.npy, --save-flows DIR or --submission DIR")
-  if FLAGS.submission and not FLAGS.lidar:
-    raise ConfigError("--submission needs --lidar (its is_dynamic uses the sweeps' ego-motion)")
   out = pathlib.Path(FLAGS.out or "")
   if FLAGS.out:
     export.check_flow_path(out)
@@ -363,10 +360,7 @@ def main(argv):
   if FLAGS["save-flows"].value:
     written.append(export.FlowSaver(FLAGS["save-flows"].value).save(f"{pc1_path},{pc2_path}",
                                                                      flow_Nx3))
-  if FLAGS.submission:
-    from jaxflow import submission  # pylint: disable=import-outside-toplevel
-    written.append(submission.write_user_pair(FLAGS.submission, pc1_path, flow_Nx3,
-                                              sweep.motion.flow(pc1)))
+  written += submission.user_pair(FLAGS.submission, pc1_path, pc1, flow_Nx3, FLAGS.lidar and sweep)
   if note1:
     print(f"note: {note1}; {written[0]} has one row per remaining PC1 row, in file order",
           file=sys.stderr)

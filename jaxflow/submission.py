@@ -106,6 +106,16 @@ class SubmissionWriter:
             f"av2.evaluation.scene_flow.eval {self.annotations} {self.folder}")
 
 
+def user_pair(folder, pc1_path, pc1_Nx3, flow_Nx3, sweep) -> list:
+  """predict's --submission (None: nothing, []): `write_user_pair` with the ego-motion of
+  `sweep` (ground.SweepInfo of predict --lidar; None without --lidar: a ConfigError)."""
+  if not folder:
+    return []
+  if not sweep:
+    raise ConfigError("--submission needs --lidar (is_dynamic uses the sweeps' ego-motion)")
+  return [write_user_pair(folder, pc1_path, flow_Nx3, sweep.motion.flow(pc1_Nx3))]
+
+
 def write_user_pair(folder, pc1_path, flow_Nx3, ego_flow_Nx3) -> pathlib.Path:
   """predict's --submission: FOLDER/<log_id>/<timestamp_ns>.feather for the user's sweep PC1, one
   row per point of PC1 in file order; is_dynamic = |flow - ego_flow| >= 0.05 m. <timestamp_ns> is
