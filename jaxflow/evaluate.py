@@ -8,8 +8,9 @@ r"""Evaluates a checkpoint on a dataset: the paper's table (EPE, AccS, AccR, out
 (workdir, checkpoints folder or step folder; default: the shipped
 jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192 points, 32
 iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; --dataset and --split
-default to config.eval.dataset and config.eval.split. A dataset with ego-motion flow and labels
-(opensf:DIR) also gets the three-way EPE (FD, FS, BS and their mean) in the table and the JSON;
+default to config.eval.dataset and config.eval.split. A dataset with av2 labels (opensf:DIR) also
+gets the official Argoverse 2 numbers (jaxflow.av2_eval; docs/training.md) in the tables and the
+JSON, and --submission DIR writes the challenge's files (jaxflow.submission);
 --save-flows DIR writes the flow of every pair (one .npy per pair, named by the pair).
 --method nsfp|optimise evaluates the per-pair optimisation methods instead of the network alone
 (docs/methods.md).
