@@ -1,8 +1,9 @@
 """jaxflow.av2_eval against the official code: the av2 package's own compute_metrics and
-results_to_dict (installed by .ci/run with --no-deps), and a plain loop written from
-bucketed-scene-flow-eval's BucketedEPEEvaluator (its package imports open3d and opencv, too heavy
-for CI): per frame and fine class the mean EPE and speed of each bucket, count-weighted over frames,
-then merged into the meta-classes, normalised, and averaged as its compute_results does."""
+results_to_dict, bucketed-scene-flow-eval's own BucketedEPEEvaluator (both installed by .ci/run with
+--no-deps; the latter imports open3d and opencv at module level, which stand-ins replace), and a
+plain loop written from the bucketed definition: per frame and fine class the mean EPE and speed of
+each bucket, count-weighted over frames, then merged into the meta-classes, normalised, and averaged
+as its compute_results does."""
 
 import math
 
@@ -128,8 +129,8 @@ def bucketed_reference(pairs, distance=35.0):
       for b, (epe, speed, count) in merged.get(name, {}).items():
         if b in cells:
           e0, s0, c0 = cells[b]
-          cells[b] = ((e0 * c0 + epe * count) / (c0 + count), (s0 * c0 + speed * count) / (c0 + count),
-                      c0 + count)
+          total = c0 + count
+          cells[b] = ((e0 * c0 + epe * count) / total, (s0 * c0 + speed * count) / total, total)
         else:
           cells[b] = (epe, speed, count)
     static = cells[0][0] if 0 in cells else float("nan")
@@ -170,3 +171,63 @@ def test_official_counts_every_point_once_not_every_pair():
                               "ego_xy": np.zeros((1, n, 2)), "mask": np.ones((1, n)),
                               "pair_valid": [1], "names": ["x"]})
   assert official.results()["av2"]["EPE/Foreground/Static"] == pytest.approx(0.01)
+
+
+def test_bucketed_equals_bucketed_scene_flow_evals_own_code(monkeypatch):
+  """bucketed-scene-flow-eval's own BucketedEPEEvaluator (installed by .ci/run with --no-deps):
+  its package imports open3d, opencv and pyquaternion at module level for its viewers and loaders,
+  which the evaluation never calls, so empty stand-ins are put in their place for the import."""
+  import sys  # pylint: disable=import-outside-toplevel
+  import types  # pylint: disable=import-outside-toplevel
+
+  class Anything:
+    def __getattr__(self, name):
+      return Anything()
+
+    def __call__(self, *args, **kwargs):
+      return Anything()
+
+  for name in ("open3d", "cv2", "pyquaternion"):
+    if name not in sys.modules:
+      stub = types.ModuleType(name)
+      stub.__getattr__ = lambda attr: Anything()
+      monkeypatch.setitem(sys.modules, name, stub)
+  bucketed = pytest.importorskip("bucketed_scene_flow_eval.eval.bucketed_epe",
+                                 reason="bucketed-scene-flow-eval (.ci/run installs it)")
+  meta_classes = pytest.importorskip(
+    "bucketed_scene_flow_eval.datasets.argoverse2.av2_metacategories").BUCKETED_METACATAGORIES
+
+  class Points:  # the PointCloud it reads: .points and .shape
+    def __init__(self, points):
+      self.points, self.shape = points, points.shape
+
+  evaluator = bucketed.BucketedEPEEvaluator.__new__(bucketed.BucketedEPEEvaluator)
+  edges = np.concatenate([np.linspace(0, 2.0, 51), [np.inf]])  # its defaults, without its folder
+  evaluator.speed_thresholds = list(zip(edges, edges[1:]))
+  evaluator.meta_class_lookup = meta_classes
+  evaluator.eval_frame_results = []
+  # its av2 class ids are av2's index - 1 (BACKGROUND -1)
+  evaluator.class_id_to_name = {i - 1: "BACKGROUND" if i == 0 else n
+                                for i, n in enumerate(av2_eval.CATEGORIES)}
+  official = av2_eval.Official()
+  for p in random_pairs(4, count=3, n=400):
+    v = p["valid"]
+    points = np.c_[p["ego_xy"], np.zeros(len(v))][v]
+    rigid = p["rigid"].astype(np.float64)
+    frame = evaluator._build_eval_frame_results(  # pylint: disable=protected-access
+      Points(points), p["category"][v].astype(int) - 1, (p["gt"] - rigid)[v],
+      (p["pred"] - rigid)[v])  # its flows are ego-motion compensated (OpenSceneFlow's v2 eval)
+    evaluator.eval_frame_results.append(frame)
+    official.add(p["pred"][None], {"flow": p["gt"][None], "rigid_flow": p["rigid"][None],
+                                   "category": p["category"][None], "ego_xy": p["ego_xy"][None],
+                                   "mask": v[None], "pair_valid": [1], "names": ["x"]})
+  # pylint: disable=protected-access
+  stats = evaluator._category_to_average_stats(evaluator._category_to_per_frame_stats())
+  matrix = evaluator._build_stat_table(stats, 35)  # compute_results' distance: 35 m
+  got = official.results()["bucketed"]
+  for name, error in matrix.get_overall_class_errors().items():
+    assert same(got["classes"][name]["static_epe"], float(error.static_epe)), name
+    assert same(got["classes"][name]["dynamic_norm_epe"], float(error.dynamic_error)), name
+  mean = matrix.get_mean_average_values()
+  assert same(got["static_epe"], float(mean.static_epe))
+  assert same(got["dynamic_norm_epe"], float(mean.dynamic_error))

@@ -101,7 +101,8 @@ def test_av2s_evaluator_on_the_export_gives_what_evaluate_py_printed(checkpoint,
   for key, value in want.items():
     got = results["av2"][key]
     assert (math.isnan(got) and math.isnan(value)) or got == pytest.approx(value, rel=1e-9), key
-  assert not math.isnan(want["EPE 3-Way Average"]) and not math.isnan(want["EPE/Foreground/Dynamic"])
+  assert not math.isnan(want["EPE 3-Way Average"])
+  assert not math.isnan(want["EPE/Foreground/Dynamic"])
   # ... and the table evaluate.py printed (4 decimals)
   printed = re.search(r"\| EPE 3-Way Average +\| +([0-9.]+)", proc.stdout)
   assert printed and float(printed.group(1)) == pytest.approx(want["EPE 3-Way Average"], abs=5e-5)
