@@ -143,3 +143,12 @@ def test_predict_lidar_writes_the_submission_layout(checkpoint, tmp_path):
   assert pred["is_dynamic"].dtype == bool
   bad = run(["-m", "jaxflow.predict", str(pc1), str(pc2), "--submission", str(dest)])
   assert bad.returncode != 0 and "--submission needs --lidar" in bad.stderr
+
+
+def test_argoverse_eval_config_reads_the_challenges_points():
+  from jaxflow.configs import argoverse_eval  # pylint: disable=import-outside-toplevel
+
+  config = argoverse_eval.get_config("opensf:/data/av2/sensor")
+  assert config.eval.dataset == "opensf:/data/av2/sensor,region=challenge"
+  assert config.eval.split == "val" and config.eval.num_points == 0
+  assert argoverse_eval.get_config("").eval.dataset == "argoverse:data/argoverse"
