@@ -213,9 +213,10 @@ class Official:
     return {"av2": av2, "bucketed": {**bucketed_results(self.buckets), "pairs": self.pairs}}
 
 
-def format_results(results: dict) -> str:
+def format_results(results: dict, dataset=None) -> str:
   """The av2 breakdown (count-weighted over the split) and the bucketed EPE of `results`
-  (Official.results()) as two tables."""
+  (Official.results()) as two tables; a last line says when `dataset` is not read on the
+  challenge's points (opensf without region=challenge)."""
   from jaxflow import tables  # pylint: disable=import-outside-toplevel
 
   r, rows = results["av2"], []
@@ -232,4 +233,8 @@ def format_results(results: dict) -> str:
            for k, v in b["classes"].items()]
   brows.append(("mean", f"{b['static_epe']:.4f}", f"{b['dynamic_norm_epe']:.4f}", ""))
   bhead = ("bucketed 2024 (35 m box)", "static EPE", "dynamic normalised EPE", "points")
-  return tables.markdown_table(head, rows) + "\n" + tables.markdown_table(bhead, brows)
+  text = tables.markdown_table(head, rows) + "\n" + tables.markdown_table(bhead, brows)
+  if getattr(dataset, "options", {}).get("region", "challenge") != "challenge":
+    text += ("\nnote: on the reader's points (ground removed, the max_range disc), not the "
+             "challenge's: open the dataset with region=challenge for those")
+  return text

@@ -300,7 +300,7 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
     return results
   print(format_table([(f"{dataset} ({split})", results)]))
   if "av2" in results:
-    print(av2_eval.format_results(results))
+    print(av2_eval.format_results(results, ds))
   elif "three_way_local" in results:
     print(format_three_way([(f"{dataset} ({split})", results)]))
   if writer:

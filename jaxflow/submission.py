@@ -78,6 +78,10 @@ class SubmissionWriter:
     if num_points:
       raise ConfigError(f"--submission needs every point of each sweep: give "
                         f"--config.eval.num_points=0 (it is {num_points})")
+    name = getattr(dataset, "name", "")
+    if dataset is not None and not name.startswith("opensf:"):
+      raise ConfigError(f"--submission needs an Argoverse 2 dataset with labels (opensf:DIR), got "
+                        f"{name or type(dataset).__name__}")
     self.folder = pathlib.Path(folder)
     self.annotations = annotations_folder(self.folder)
     self.files = 0

@@ -21,6 +21,7 @@ import pytest
 import av2_fixture
 from jaxflow import checkpointing, export, submission, training
 from jaxflow.configs import default
+from jaxflow.data import open_dataset
 from jaxflow.errors import ConfigError
 from jaxflow.model import build_model
 
@@ -115,6 +116,8 @@ def test_av2s_evaluator_on_the_export_gives_what_evaluate_py_printed(checkpoint,
 def test_writer_refuses_samples_and_old_files(tmp_path):
   with pytest.raises(ConfigError, match="num_points=0"):
     submission.SubmissionWriter(tmp_path / "s", 8192)
+  with pytest.raises(ConfigError, match=r"needs an Argoverse 2 dataset .*synthetic_lidar"):
+    submission.SubmissionWriter(tmp_path / "s", 0, open_dataset("synthetic_lidar:2", "test"))
   (tmp_path / "s" / "log").mkdir(parents=True)
   (tmp_path / "s" / "log" / "1.feather").write_bytes(b"")
   with pytest.raises(ConfigError, match="already holds"):

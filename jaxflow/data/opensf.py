@@ -193,7 +193,7 @@ class OpenSceneFlow(Dataset):
           raise DataError(path, "'lidar' is in the sensor frame (OpenSceneFlow's extract_av2.py "
                           "since its commit 2bd9036; its flow is in the ego frame) and the file "
                           "does not hold the sensor's extrinsic: give calibration=AV2_DIR, the AV2 "
-                          "split it was made from")
+                          "split it was made from (or lidar=ego if you know it is the ego frame)")
       self._to_ego[path] = (np.eye(4) if frame == "ego"
                             else read_up_lidar_extrinsic(self.options["calibration"], path))
     return self._to_ego[path]
