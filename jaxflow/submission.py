@@ -70,9 +70,9 @@ def write_annotation(folder, log_id: str, timestamp_ns: int, labels: dict) -> pa
 
 class SubmissionWriter:
   """Receives every evaluated pair (`add(name, labels)`: `av2_eval.Official`'s on_pair) and writes
-  its prediction and annotation files. Pair names are opensf's FILE:TIMESTAMP. The flows must be
-  whole clouds: num_points (config.eval.num_points) 0, else a ConfigError (a sample is not rows of
-  the sweep)."""
+  its prediction and annotation files, the flows in the ego frame (opensf's frame=camera is turned
+  back). Pair names are opensf's FILE:TIMESTAMP. The flows must be whole clouds: num_points
+  (config.eval.num_points) 0, else a ConfigError (a sample is not rows of the sweep)."""
 
   def __init__(self, folder, num_points, dataset=None):
     if num_points:
@@ -90,6 +90,10 @@ class SubmissionWriter:
         raise ConfigError(f"--submission {self.folder}: {f} already holds .feather files; give a "
                           "new folder or empty it")
     options = getattr(dataset, "options", None)
+    self.to_ego = None  # columns that bring a flow of the reader's frame back to the ego frame
+    if options is not None and options.get("frame") == "camera":
+      from jaxflow.data.opensf import TO_CAMERA  # pylint: disable=import-outside-toplevel
+      self.to_ego = np.argsort(TO_CAMERA)
     self.note = None
     if options is None or options.get("region") != "challenge":
       self.note = ("--submission: the rows are the points evaluated, not the challenge's eval-mask "
@@ -100,6 +104,9 @@ class SubmissionWriter:
     from jaxflow.data.opensf import sweep_id  # pylint: disable=import-outside-toplevel
 
     log_id, stamp = sweep_id(name)
+    if self.to_ego is not None:  # av2's files hold ego-frame flows
+      labels = {**labels, "pred": labels["pred"][:, self.to_ego],
+                "gt": labels["gt"][:, self.to_ego]}
     write_prediction(self.folder, log_id, stamp, labels["pred"], labels["pred_dynamic"])
     write_annotation(self.annotations, log_id, stamp, labels)
     self.files += 1

@@ -58,7 +58,8 @@ def test_av2s_evaluator_on_the_export_gives_what_evaluate_py_printed(checkpoint,
   root = tmp_path / "opensf"
   truth = av2_fixture.write_split(root, lidar_frame="sensor", eval_every=2)
   out, dest, flows = tmp_path / "r.json", tmp_path / "submit", tmp_path / "flows"
-  spec = f"opensf:{root},region=challenge,calibration={root / 'av2'}"
+  # frame=camera: the model's frame; the files must still hold ego-frame flows
+  spec = f"opensf:{root},region=challenge,frame=camera,calibration={root / 'av2'}"
   proc = run(["evaluate.py", "--config", "configs/default.py:smoke", "--checkpoint",
               str(checkpoint), "--dataset", spec, "--split", "val", "--json", str(out),
               "--submission", str(dest), "--save-flows", str(flows),
@@ -82,7 +83,7 @@ def test_av2s_evaluator_on_the_export_gives_what_evaluate_py_printed(checkpoint,
     assert pred["is_dynamic"].dtype == bool and len(pred) == rows.sum()
     saved = np.load(flows / (export.flow_stem(f"{root / 'val' / log}.h5:{t}") + ".npy"))
     np.testing.assert_array_equal(pred[list(submission.FLOW_COLUMNS)].to_numpy(),
-                                  saved.astype(np.float16))
+                                  saved[:, [2, 0, 1]].astype(np.float16))  # camera -> ego
     ann = pd.read_feather(annotations / log / f"{t}.feather")
     np.testing.assert_array_equal(ann["category_indices"], s["category"][rows])
     np.testing.assert_array_equal(ann["is_valid"], s["valid"][rows])
