@@ -14,7 +14,8 @@ flags shared with predict say the same in both tools (--iters, --max_points, --f
 default to config.eval.dataset and config.eval.split. --method (jaxflow.methods) is `network` (the
 paper's protocol) by default; optimise and nsfp are the per-pair optimisation methods
 (docs/methods.md; predict's default is optimise). A dataset with ego-motion flow and labels
-(opensf:DIR) also gets the three-way EPE (FD, FS, BS and their mean) in the table and the JSON.
+(opensf:DIR) also gets the official Argoverse 2 numbers (jaxflow.av2_eval; docs/training.md) in
+the tables and the JSON, and --submission DIR writes the challenge's files (jaxflow.submission).
 --save_flows DIR writes the flow of every pair (one .npy per pair, named by the pair),
 --render_dir DIR the Fig. 2 view of every pair (predict's --render FILE: one pair). Many processes:
 --coordinator, --num_processes, --process_id (jaxflow.distributed).
@@ -40,6 +41,9 @@ def _define_flags():
   flags.DEFINE_string("json", None, "Write the results here as JSON.")
   flags.DEFINE_string("render_dir", None, "Render every pair into this folder as NAME.png "
                       "(jaxflow.viz).")
+  flags.DEFINE_string("submission", None, "Write the AV2 challenge's files into this folder "
+                      "(jaxflow.submission: <log_id>/<timestamp_ns>.feather, annotations in "
+                      "DIR_annotations; opensf datasets, --max_points 0).")
   cli.define_run_flags("network")
 
 
@@ -58,7 +62,8 @@ def main(argv):
   if FLAGS.render_dir:
     on_batch.append(functools.partial(reporting.render_batch, FLAGS.render_dir))
   results = evaluation.evaluate_checkpoint(FLAGS.checkpoint, config, FLAGS.dataset, FLAGS.split,
-                                           model_fields, FLAGS.method, chosen, on_batch)
+                                           model_fields, FLAGS.method, chosen, on_batch,
+                                           submission_dir=FLAGS.submission)
   if distributed.is_primary():
     reporting.report(results, FLAGS.json)
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from tqdm import tqdm
 
-from jaxflow import checkpointing, distributed, methods
+from jaxflow import av2_eval, checkpointing, distributed, methods, submission
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import ConfigError
 from jaxflow.events import FirstPairs
@@ -83,17 +83,20 @@ class _Totals(dict):
     return dict(zip(self, distributed.sum_over_processes(list(self.values()))))
 
 
-def _run(predict, args, batches, compiled=None, total=None, on_batch=()) -> dict:
+def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair=None) -> dict:
   """Averages the metrics of `predict(*args, pc1, pc2)` over the pairs of `batches` (this
   process's; the sums are added over processes). `compiled` caches the compiled `predict` by input
   shapes (compiled before timing) across calls; `total`: the pairs expected, for the progress bar.
-  Batches with ego-motion flow and labels add "three_way" (metrics.ThreeWayAverage). A `predict`
+  Batches with ego-motion flow and labels add "three_way_local" (OpenSceneFlow's local reading,
+  metrics.ThreeWayAverage) and, with av2 labels, "av2" and "bucketed" (the official readings,
+  av2_eval.Official; `on_pair(name, labels)` gets each pair's: SubmissionWriter.add). A `predict`
   that returns (flow, info) (an optimising method's `with_info`) adds "convergence": the pairs it
   optimised, those whose flow went non-finite (the starting flow is kept), those whose early
   stopping fired, and the mean steps. `on_batch`: callables (batch, flow B x N x 3, numpy)."""
   compiled = {} if compiled is None else compiled
   totals = _Totals()
   three_way = ThreeWayAverage()
+  official = av2_eval.Official(on_pair)
   bar = tqdm(total=total, desc="evaluating", unit="pair", file=sys.stderr, leave=False,
              dynamic_ncols=True, mininterval=1.0, disable=not distributed.is_primary())
   with bar:
@@ -119,16 +122,19 @@ def _run(predict, args, batches, compiled=None, total=None, on_batch=()) -> dict
         totals[k] += float(np.sum(np.asarray(per_pair[k], np.float64) * valid))
       totals["pairs"] += valid.sum()
       three_way.add(pred, batch)
+      official.add(pred, batch)
       for callback in on_batch:
         callback(batch, np.asarray(pred))
       bar.update(int(valid.sum()))
   totals = totals.reduced()
   three_way.reduce(distributed.sum_over_processes)
+  official.reduce(distributed.sum_over_processes)
   pairs = int(totals["pairs"])
   if pairs == 0:
     raise ConfigError("the evaluation dataset holds no pairs")
   results = {k: totals[k] / pairs for k in METRICS}
-  results.update(pairs=pairs, ms_per_pair=1000.0 * totals["seconds"] / pairs, **three_way.results())
+  results.update(pairs=pairs, ms_per_pair=1000.0 * totals["seconds"] / pairs,
+                 **three_way.results(), **official.results())
   if totals["optimised"]:
     optimised = totals["optimised"]
     results["convergence"] = {"pairs": int(optimised), "non_finite": int(totals["non_finite"]),
@@ -139,15 +145,15 @@ def _run(predict, args, batches, compiled=None, total=None, on_batch=()) -> dict
 
 def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int, num_iters: int = 32,
              refine: bool = False, seed: int = 0, method: str = "network", method_settings=None,
-             on_batch=()) -> dict:
+             on_batch=(), on_pair=None) -> dict:
   """Metrics of `method`'s flow (jaxflow.methods: the network alone by default) on every pair of
   `dataset`, with pairs and ms_per_pair; `on_batch`: callables (batch, flow) of every batch (the
-  points evaluated: sampled unless num_points None)."""
+  points evaluated: sampled unless num_points None); `on_pair`: see `_run`."""
   predict = model_predict_fn(model, num_iters, refine, method, method_settings,
                              with_info=method != "network")
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
   results = _run(predict, (distributed.local_copy(params),), batches, total=total,
-                 on_batch=on_batch)
+                 on_batch=on_batch, on_pair=on_pair)
   results["output"] = "refined" if refine else "coarse"
   results.update(methods.describe(method, method_settings or methods.settings(method)))
   return results
@@ -203,13 +209,14 @@ def evaluate_zero_flow(dataset, *, num_points: int | None, batch_size: int, seed
 
 def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: str | None = None,
                         split: str | None = None, model_fields=(), method: str = "network",
-                        method_settings=None, on_batch=()) -> dict:
+                        method_settings=None, on_batch=(), submission_dir=None) -> dict:
   """Evaluates a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
   The model comes from the checkpoint (checkpointing.load_for_inference); `config.eval` sets points
   (0: whole clouds), iterations, batch, seed and, unless given, the dataset and split. `method`
   (jaxflow.methods; `method_settings` default methods.settings(method)): nsfp needs no checkpoint.
-  The results also name the dataset, split, checkpoint and step.
+  The results also name the dataset, split, checkpoint and step. `submission_dir`: the AV2
+  challenge's files of every pair (jaxflow.submission), summarised under "submission".
   """
   check_no_test_time(config.eval)
   chosen = method_settings if method_settings is not None else methods.settings(method)
@@ -223,10 +230,16 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
                                                                       model_fields)
     checkpoint = checkpoint or checkpointing.SHIPPED_CHECKPOINT
   ds = open_dataset(dataset, split=split)
+  writer = submission_dir and submission.SubmissionWriter(submission_dir, config.eval.num_points, ds)
   results = evaluate(model, params, ds, num_points=config.eval.num_points or None,
                      batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
                      refine=refine, seed=config.eval.seed, method=method,
-                     method_settings=chosen, on_batch=on_batch)
+                     method_settings=chosen, on_batch=on_batch, on_pair=writer and writer.add)
   results.update(dataset=dataset, split=split, checkpoint=checkpoint and str(checkpoint), step=step,
                  num_points=config.eval.num_points, num_iters=config.eval.num_iters)
+  if "av2" in results:  # on the challenge's points, or the reader's (a note in the table)
+    results["av2"]["challenge_points"] = (
+      getattr(ds, "options", {}).get("region", "challenge") == "challenge")
+  if writer:
+    results["submission"] = {"summary": writer.summary(), "note": writer.note}
   return results

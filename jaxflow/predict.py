@@ -53,7 +53,7 @@ import sys
 
 import numpy as np
 
-from jaxflow import cli, export, ground, inference, methods
+from jaxflow import cli, export, ground, inference, methods, submission
 from jaxflow.errors import ConfigError
 
 
@@ -76,6 +76,7 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   flags.DEFINE_enum("up", "z", ["x", "y", "z"], "--lidar: the up axis (z: LiDAR; y: camera frame).")
   flags.DEFINE_float("max_range", ground.DEFAULT_MAX_RANGE, "--lidar: keep the points within this "
                      "horizontal distance (m) of the sensor; 0: all.")
+  flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
 
 
 def _used(name: str, n: int, max_points: int | None) -> str:
@@ -98,8 +99,8 @@ def main(argv):
              f"{' '.join(argv[1:]) or '(none)'}")
   pc1_path, pc2_path = argv[1:]
   config, model_fields = cli.run_settings(FLAGS.config)
-  if not FLAGS.out and not FLAGS.save_flows:
-    raise ConfigError("give --out FLOW.npy or --save_flows DIR (or both)")
+  if not FLAGS.out and not FLAGS.save_flows and not FLAGS.submission:
+    raise ConfigError("give --out FLOW.npy, --save_flows DIR or --submission DIR")
   out = pathlib.Path(FLAGS.out or "")
   if FLAGS.out:
     export.check_flow_path(out)
@@ -123,6 +124,7 @@ def main(argv):
     written.append(out)
   if FLAGS.save_flows:
     written.append(export.FlowSaver(FLAGS.save_flows).save(f"{pc1_path},{pc2_path}", flow_Nx3))
+  written += submission.user_pair(FLAGS.submission, pc1_path, pc1, flow_Nx3, prediction.sweep)
   if note1:
     print(f"note: {note1}; {written[0]} has one row per remaining PC1 row, in file order",
           file=sys.stderr)

@@ -1,11 +1,11 @@
 """What evaluate.py and train.py print and write of an evaluation: the paper's table, the
-three-way table, convergence notes, the JSON file and the pictures of every pair."""
+official Argoverse 2 tables (or the local three-way one), convergence notes, the JSON file and the pictures of every pair."""
 
 import json
 import sys
 from pathlib import Path
 
-from jaxflow import methods, tables
+from jaxflow import av2_eval, methods, tables
 from jaxflow.errors import ConfigError
 from jaxflow.metrics import format_three_way
 
@@ -24,8 +24,14 @@ def report(results: dict, json_path=None):
   has one, a convergence note on stderr) and writes them to `json_path` (JSON) when given."""
   name = f"{results['dataset']} ({results['split']})"
   print(format_table([(name, results)]))
-  if "three_way" in results:
+  if "av2" in results:
+    print(av2_eval.format_results(results))
+  elif "three_way_local" in results:
     print(format_three_way([(name, results)]))
+  if "submission" in results:
+    for line in results["submission"].values():
+      if line:
+        print(line, file=sys.stderr)
   note = methods.evaluation_note(results["method"], results.get("convergence"))
   if note:
     print(f"note: {note}", file=sys.stderr)

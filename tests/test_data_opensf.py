@@ -17,7 +17,7 @@ import pytest
 
 from jaxflow import checkpointing, evaluation, export, train_state
 from jaxflow.configs import default
-from jaxflow.data import convert, eval_batches, open_dataset
+from jaxflow.data import convert, eval_batches, open_dataset, opensf
 from jaxflow.errors import DataError
 from jaxflow.metrics import three_way_epe
 from jaxflow.model import build_model
@@ -154,7 +154,7 @@ def test_three_way_epe_matches_a_loop_over_points():
 def test_evaluation_averages_three_way_over_pairs_leaving_out_empty_classes(opensf_dir):
   root, _ = opensf_dir
   ds = open_dataset(f"opensf:{root}", "val")
-  got = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=2)["three_way"]
+  got = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=2)["three_way_local"]
   per_pair = [three_way_epe(np.zeros_like(b["flow"][0]), b["flow"][0], b["rigid_flow"][0],
                             b["foreground"][0], b["mask"][0]) for b in eval_batches(ds, 1, 64)]
   assert np.isnan(per_pair[2]["fd"]) and not np.isnan(per_pair[0]["fd"])  # log_b: no mover
@@ -162,7 +162,7 @@ def test_evaluation_averages_three_way_over_pairs_leaving_out_empty_classes(open
   assert got["fd"] == pytest.approx((per_pair[0]["fd"] + per_pair[1]["fd"]) / 2, rel=1e-6)
   for k in ("fs", "bs", "mean"):
     assert got[k] == pytest.approx(np.mean([p[k] for p in per_pair]), rel=1e-6)
-  assert "three_way" not in evaluation.evaluate_zero_flow(
+  assert "three_way_local" not in evaluation.evaluate_zero_flow(
     open_dataset("synthetic_lidar:2", "test"), num_points=64, batch_size=1)
 
 
@@ -176,8 +176,8 @@ def test_conversion_keeps_the_ego_motion_and_labels(opensf_dir, tmp_path):
     for k in ("pc1", "pc2", "flow", "mask", "rigid_flow", "foreground", "name"):
       np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
   kwargs = dict(num_points=64, batch_size=1)
-  assert (evaluation.evaluate_zero_flow(converted, **kwargs)["three_way"]
-          == evaluation.evaluate_zero_flow(source, **kwargs)["three_way"])
+  assert (evaluation.evaluate_zero_flow(converted, **kwargs)["three_way_local"]
+          == evaluation.evaluate_zero_flow(source, **kwargs)["three_way_local"])
 
 
 @pytest.fixture(scope="module")
@@ -205,9 +205,11 @@ def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoi
      "--save_flows", str(flows), "--config.eval.num_points=0", "--config.eval.batch_size=1"],
     cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
   assert proc.returncode == 0, proc.stderr[-3000:]
-  assert "three-way" in proc.stdout and "EPE FD" in proc.stdout
+  assert "av2 official" in proc.stdout and "EPE 3-Way Average" in proc.stdout
+  assert "OpenSceneFlow local" not in proc.stdout  # the local reading: only without av2 labels
   results = json.loads(out.read_text())
-  assert results["three_way"]["pairs"] == 3 and results["three_way"]["mean"] > 0
+  assert results["three_way_local"]["pairs"] == 3 and results["three_way_local"]["mean"] > 0
+  assert results["av2"]["pairs"] == 3 and results["av2"]["EPE 3-Way Average"] > 0
   ds = open_dataset(f"opensf:{root}", "val")
   assert sorted(p.name for p in flows.iterdir()) == sorted(
     export.flow_stem(p.name) + ".npy" for p in ds)
@@ -217,3 +219,95 @@ def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoi
   epe = np.mean([np.linalg.norm(np.load(flows / (export.flow_stem(p.name) + ".npy"))[p.mask]
                                 - p.flow[p.mask], axis=1).mean() for p in ds])
   assert results["epe"] == pytest.approx(epe, rel=1e-4)
+
+
+# The two layouts of OpenSceneFlow's extract_av2.py (tests/av2_fixture.py, from the documented
+# layout): `lidar` in the ego frame (before its commit 2bd9036) or in the up_lidar sensor frame.
+import av2_fixture  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def av2_dirs(tmp_path_factory):
+  pytest.importorskip("pyarrow")  # the AV2 calibration is a feather file
+  out = {}
+  for frame in ("ego", "sensor"):
+    root = tmp_path_factory.mktemp(frame)
+    out[frame] = root, av2_fixture.write_split(root, lidar_frame=frame, eval_every=2, seed=5)
+  return out
+
+
+def test_both_lidar_frames_read_as_the_ego_frame(av2_dirs):
+  (ego_root, truth), (sensor_root, _) = av2_dirs["ego"], av2_dirs["sensor"]
+  ego = open_dataset(f"opensf:{ego_root}", "val")
+  sensor = open_dataset(f"opensf:{sensor_root},calibration={sensor_root / 'av2'}", "val")
+  assert len(ego) == len(sensor) == 5
+  for a, b in zip(ego, sensor):  # auto-detected: both files give the ego-frame truth
+    log, stamp = opensf.sweep_id(a.name)
+    s = truth[log, stamp]
+    kept = ~s["ground"] & (np.hypot(s["xyz"][:, 0], s["xyz"][:, 1]) < 35)
+    np.testing.assert_allclose(a.pc1, s["xyz"][kept], atol=1e-6)
+    np.testing.assert_allclose(b.pc1, s["xyz"][kept], atol=1e-4)
+    for k in ("pc2", "rigid_flow", "ego_xy"):
+      np.testing.assert_allclose(getattr(b, k), getattr(a, k), atol=1e-4)
+    np.testing.assert_array_equal(a.flow, s["flow"][kept])
+    np.testing.assert_array_equal(b.category, s["category"][kept])
+    np.testing.assert_array_equal(a.foreground, s["category"][kept] != 0)
+    # the rigid flow of the background is its flow: the frames agree with flow and ego_motion
+    background = s["category"][kept] == 0
+    np.testing.assert_allclose(b.rigid_flow[background], b.flow[background], atol=1e-4)
+  as_ego = open_dataset(f"opensf:{sensor_root},lidar=ego", "val")[0]  # a wrong explicit choice
+  assert np.median(as_ego.pc1[:, 2]) < np.median(ego[0].pc1[:, 2]) - 1.0  # 1.64 m lower
+  with pytest.raises(DataError, match="sensor frame .* give calibration=AV2_DIR"):
+    open_dataset(f"opensf:{sensor_root}", "val")[0]
+  with pytest.raises(DataError, match="lidar=sensor needs calibration"):
+    open_dataset(f"opensf:{sensor_root},lidar=sensor", "val")
+  with pytest.raises(DataError, match="egovehicle_SE3_sensor.feather: cannot read"):
+    open_dataset(f"opensf:{sensor_root},lidar=sensor,calibration={sensor_root}", "val")[0]
+
+
+def test_a_file_that_cannot_tell_its_frame_asks_for_lidar(tmp_path):
+  (tmp_path / "val").mkdir()
+  straight = av2_fixture.se3(0.0, (1.0, 0.0, 0.0))  # no rotation: both frames fit the flow
+  av2_fixture.write_log(tmp_path / "val" / "log.h5", np.random.default_rng(0), (1, 2),
+                        lidar_frame="sensor", ego_motion=straight)
+  with pytest.raises(DataError, match=r"log.h5: cannot tell the frame of 'lidar'.*give lidar=ego"):
+    open_dataset(f"opensf:{tmp_path}", "val")[0]
+  assert len(open_dataset(f"opensf:{tmp_path},lidar=ego", "val")[0].pc1) > 0
+
+
+def test_region_challenge_and_eval_mask(av2_dirs):
+  root, truth = av2_dirs["ego"]
+  challenge = open_dataset(f"opensf:{root},region=challenge", "val")
+  # only the frames with an eval_mask are pairs (labelled frames 0 and 2 of the first log, 0 of
+  # the second), and pc1 is the mask's points in file order
+  expected = [(log, t) for log, stamps in zip(av2_fixture.LOG_IDS, av2_fixture.STAMPS)
+              for k, t in enumerate(stamps[:-1]) if k % 2 == 0]
+  assert [opensf.sweep_id(p.name) for p in challenge] == expected
+  for pair in challenge:
+    s = truth[opensf.sweep_id(pair.name)]
+    rows = ~s["ground"] & (np.abs(s["xyz"][:, :2]) <= 50).all(1)
+    np.testing.assert_array_equal(pair.pc1, s["xyz"][rows])
+    np.testing.assert_array_equal(pair.mask, s["valid"][rows])
+    assert (np.abs(pair.pc2[:, :2]) <= 50).all()
+  # the disc reading honours eval_mask where the frame has one: those points only are evaluated
+  with h5py.File(next((root / "val").glob(f"{av2_fixture.LOG_IDS[0]}.h5")), "a") as f:
+    group = f[str(av2_fixture.STAMPS[0][0])]
+    mask = group["eval_mask"][()][:, 0]
+    mask[: len(mask) // 2] = False
+    del group["eval_mask"]
+    group.create_dataset("eval_mask", data=mask[:, None])
+  s = truth[av2_fixture.LOG_IDS[0], av2_fixture.STAMPS[0][0]]
+  disc = open_dataset(f"opensf:{root}", "val")[0]
+  kept = ~s["ground"] & (np.hypot(s["xyz"][:, 0], s["xyz"][:, 1]) < 35)
+  np.testing.assert_array_equal(disc.mask, (s["valid"] & mask)[kept])
+  assert open_dataset(f"opensf:{root},region=challenge", "val")[0].pc1.shape[0] == mask.sum()
+
+
+def test_region_challenge_without_eval_mask_is_the_box(opensf_dir):
+  root, truth = opensf_dir
+  pair = open_dataset(f"opensf:{root},region=challenge", "val")[0]
+  frame, kind, _ = truth["log_a", 9]
+  xyz = frame["lidar"][:, :3]
+  rows = ~frame["ground_mask"] & (np.abs(xyz[:, :2]) <= 50).all(1)
+  np.testing.assert_array_equal(pair.pc1, xyz[rows])
+  assert (kind[rows] == "far").any()  # the 45 m points are the challenge's, not the 35 m disc's

@@ -17,9 +17,29 @@ pc1 = lidar(t0)[:, :3], pc2 = lidar(t1)[:, :3]. Options after the folder (", key
   frame=ego (default, as stored: x forward, y left, z up) | camera: the clouds and flows rotated
     into the benchmark readers' frame (x left, y up, z forward: (x, y, z) -> (y, z, x)), the frame
     the shipped model was trained in; the metrics do not change under it.
-mask = flow_is_valid; Pair.rigid_flow = ego_motion applied to pc1, minus pc1; Pair.foreground =
-flow_category_indices != 0 (the three-way EPE, `jaxflow.metrics.three_way_epe`). Errors name the
-file and the group. A split is a subfolder (train, val, test; default train).
+  region=disc (default: the cuts above) | challenge: the Argoverse 2 challenge's points, pc1 =
+    the frame's `eval_mask` points in file order where the file has them (then only the frames
+    with an eval_mask are pairs, as the challenge evaluates), else the non-ground points with
+    |x|, |y| <= 50 m (ego frame); pc2 = its non-ground points in that box; ground and max_range
+    are not used; a non-finite point there is an error, never dropped (the rows of a submission);
+  lidar=auto (default) | ego | sensor: the frame `lidar` is stored in. OpenSceneFlow's
+    dataprocess/extract_av2.py stores the AV2 `lidar` in the up_lidar sensor frame since its commit
+    2bd9036 (older files: the ego frame) while `flow`, `pose` and `ego_motion` stay in the ego
+    frame, and the file records neither the frame nor the sensor's extrinsic. auto tells them
+    apart from the data: the flow of valid background points is exactly the ego-motion flow of
+    the ego-frame points, so in an ego-frame file |flow - (ego_motion p - p)| is float rounding
+    while in a sensor-frame file it is ~ the ego's rotation x the sensor's offset (a frame whose
+    ego turns by at least 0.03 degrees decides); a file none of whose frames decides is an error
+    asking for lidar=. lidar=sensor needs calibration=AV2_DIR, the AV2 split the file was made
+    from (AV2_DIR/<log>/calibration/egovehicle_SE3_sensor.feather, its up_lidar row; needs
+    pyarrow): the clouds are moved into the ego frame with it, so every frame of a pair is the
+    ego frame whichever version the file is.
+mask = flow_is_valid (and eval_mask where the frame has one); Pair.rigid_flow = ego_motion applied
+to pc1, minus pc1; Pair.foreground = flow_category_indices != 0 (the three-way EPE,
+`jaxflow.metrics.three_way_epe`); Pair.category = flow_category_indices and Pair.ego_xy = pc1's x,
+y in the ego frame (the official breakdown, `jaxflow.av2_eval`). A pair's name is FILE:TIMESTAMP
+(`sweep_id` gives av2's (log_id, timestamp_ns)). Errors name the file and the group. A split is a
+subfolder (train, val, test; default train).
 """
 
 import pathlib
@@ -31,8 +51,12 @@ from jaxflow.data.pointfiles import MIN_POINTS
 from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.errors import DataError
 
-DEFAULTS = {"ground": "remove", "max_range": 35.0, "frame": "ego"}
-CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera")}
+DEFAULTS = {"ground": "remove", "max_range": 35.0, "frame": "ego", "region": "disc",
+            "lidar": "auto", "calibration": ""}
+CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera"),
+           "region": ("disc", "challenge"), "lidar": ("auto", "ego", "sensor")}
+CHALLENGE_BOX_M = 50.0  # the challenge's points: non-ground, |x|, |y| <= 50 m (ego frame)
+DECISIVE_ROTATION = 5e-4  # rad (0.03 degrees): an ego rotation that tells the lidar frames apart
 TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward)
 
 
@@ -52,10 +76,16 @@ def parse_spec(arg: str) -> tuple[str, dict]:
         raise DataError(f"opensf:{arg}", f"max_range={value!r} is not a number") from None
       if options[key] < 0:
         raise DataError(f"opensf:{arg}", f"max_range must be >= 0, got {value}")
+    elif key == "calibration":
+      options[key] = value
     elif value not in CHOICES[key]:
       raise DataError(f"opensf:{arg}", f"{key}={value!r}; expected one of {CHOICES[key]}")
     else:
       options[key] = value
+  if options["lidar"] == "sensor" and not options["calibration"]:
+    raise DataError(f"opensf:{arg}", "lidar=sensor needs calibration=AV2_DIR (the AV2 split the "
+                    "h5 files were made from: AV2_DIR/<log>/calibration/"
+                    "egovehicle_SE3_sensor.feather)")
   return root, options
 
 
@@ -81,16 +111,22 @@ class OpenSceneFlow(Dataset):
     self.files = sorted(folder.glob("*.h5"))
     if not self.files:
       raise DataError(folder, "no <log>.h5 files")
+    if self.options["lidar"] == "sensor" and not self.options["calibration"]:
+      raise DataError(self.root, "lidar=sensor needs calibration=AV2_DIR")
     self.pairs = []  # (file, t0, t1)
     for path in self.files:
       try:
         with h5py.File(path, "r") as f:
           keys = _sorted_keys(f, path)
-          self.pairs += [(path, k0, k1) for k0, k1 in zip(keys, keys[1:]) if "flow" in f[k0]]
+          labelled = [(k0, k1) for k0, k1 in zip(keys, keys[1:]) if "flow" in f[k0]]
+          if self.options["region"] == "challenge" and any("eval_mask" in f[k] for k in keys):
+            labelled = [(k0, k1) for k0, k1 in labelled if "eval_mask" in f[k0]]
+          self.pairs += [(path, k0, k1) for k0, k1 in labelled]
       except OSError as e:
         raise DataError(path, f"cannot open as HDF5, truncated or corrupt ({e})") from None
     if not self.pairs:
       raise DataError(folder, "no labelled pairs (no frame with 'flow' followed by another frame)")
+    self._to_ego = {}  # file -> 4 x 4 ego <- stored lidar frame (identity: ego-frame lidar)
 
   def __len__(self):
     return len(self.pairs)
@@ -99,11 +135,13 @@ class OpenSceneFlow(Dataset):
     path, k0, k1 = self.pairs[i]
     try:
       with h5py.File(path, "r") as f:
-        frame0 = _read(f, path, k0, ("lidar", "ground_mask", "flow", "flow_is_valid",
-                                     "flow_category_indices", "ego_motion"))
+        to_ego = self._lidar_to_ego(f, path)
+        frame0 = _read(f, path, k0, _LABELLED + (("eval_mask",) if "eval_mask" in f[k0] else ()))
         frame1 = _read(f, path, k1, ("lidar", "ground_mask"))
     except OSError as e:
       raise DataError(path, f"group {k0}/{k1}: unreadable ({e})") from None
+    for frame in (frame0, frame1):
+      frame["lidar"] = _apply(to_ego, frame["lidar"])
     keep1 = self._keep(frame0, path, k0)
     keep2 = self._keep(frame1, path, k1)
     pc1 = frame0["lidar"][keep1]
@@ -113,23 +151,52 @@ class OpenSceneFlow(Dataset):
               "rigid_flow": rigid}
     if self.options["frame"] == "camera":
       arrays = {k: np.ascontiguousarray(v[:, TO_CAMERA]) for k, v in arrays.items()}
-    return Pair(**arrays, mask=frame0["flow_is_valid"][keep1],
-                foreground=frame0["flow_category_indices"][keep1] != 0, name=f"{path}:{k0}")
+    mask = frame0["flow_is_valid"][keep1]
+    if "eval_mask" in frame0:
+      mask = mask & frame0["eval_mask"][keep1]
+    category = frame0["flow_category_indices"][keep1].astype(np.uint8)
+    return Pair(**arrays, mask=mask, foreground=category != 0, category=category,
+                ego_xy=np.ascontiguousarray(pc1[:, :2]), name=f"{path}:{k0}")
 
   def _keep(self, frame, path, key) -> np.ndarray:
     points = frame["lidar"]
-    keep = np.isfinite(points).all(1)
+    finite = np.isfinite(points).all(1)
     if "flow" in frame:
-      keep &= np.isfinite(frame["flow"]).all(1)
-    if self.options["ground"] == "remove":
-      keep &= ~frame["ground_mask"]
-    if self.options["max_range"]:
-      keep &= np.hypot(points[:, 0], points[:, 1]) < self.options["max_range"]
+      finite &= np.isfinite(frame["flow"]).all(1)
+    if self.options["region"] == "challenge":
+      box = ~frame["ground_mask"] & (np.abs(points[:, :2]) <= CHALLENGE_BOX_M).all(1)
+      keep = frame["eval_mask"] if "eval_mask" in frame else box
+      if "flow" in frame and not finite[keep].all():
+        raise DataError(path, f"group {key}: {int((~finite[keep]).sum())} of the challenge's "
+                        "points have a non-finite coordinate or flow")
+      keep = keep & finite
+      cuts = "region=challenge"
+    else:
+      keep = finite
+      if self.options["ground"] == "remove":
+        keep &= ~frame["ground_mask"]
+      if self.options["max_range"]:
+        keep &= np.hypot(points[:, 0], points[:, 1]) < self.options["max_range"]
+      cuts = f"ground={self.options['ground']}, max_range={self.options['max_range']}"
     if keep.sum() < MIN_POINTS:
       raise DataError(path, f"group {key}: only {int(keep.sum())} points left after the cuts "
-                      f"(ground={self.options['ground']}, max_range={self.options['max_range']}), "
-                      f"need at least {MIN_POINTS}")
+                      f"({cuts}), need at least {MIN_POINTS}")
     return keep
+
+  def _lidar_to_ego(self, f, path) -> np.ndarray:
+    """ego <- stored `lidar` frame of file `path` (identity for ego-frame files), cached."""
+    if path not in self._to_ego:
+      frame = self.options["lidar"]
+      if frame == "auto":
+        frame = _detect_lidar_frame(f, path)
+        if frame == "sensor" and not self.options["calibration"]:
+          raise DataError(path, "'lidar' is in the sensor frame (OpenSceneFlow's extract_av2.py "
+                          "since its commit 2bd9036; its flow is in the ego frame) and the file "
+                          "does not hold the sensor's extrinsic: give calibration=AV2_DIR, the AV2 "
+                          "split it was made from (or lidar=ego if you know it is the ego frame)")
+      self._to_ego[path] = (np.eye(4) if frame == "ego"
+                            else read_up_lidar_extrinsic(self.options["calibration"], path))
+    return self._to_ego[path]
 
   def describe(self):
     opts = ", ".join(f"{k}={v}" for k, v in self.options.items())
@@ -144,11 +211,89 @@ def _reopen(root, split, options):
   return OpenSceneFlow(root, split, **options)
 
 
+def sweep_id(name: str) -> tuple[str, int]:
+  """av2's (log_id, timestamp_ns) of an opensf pair name FILE:TIMESTAMP (log_id: the file stem)."""
+  file, _, stamp = str(name).rpartition(":")
+  if not file or not stamp.lstrip("-").isdigit():
+    raise DataError(name, "not an opensf pair name (expected <log>.h5:<timestamp_ns>)")
+  return pathlib.Path(file).stem, int(stamp)
+
+
+_LABELLED = ("lidar", "ground_mask", "flow", "flow_is_valid", "flow_category_indices", "ego_motion")
+
+
+def _apply(transform_4x4, points_Nx3) -> np.ndarray:
+  if np.array_equal(transform_4x4, np.eye(4)):
+    return points_Nx3
+  return (points_Nx3 @ transform_4x4[:3, :3].T + transform_4x4[:3, 3]).astype(np.float32)
+
+
+def _detect_lidar_frame(f, path) -> str:
+  """"ego" or "sensor" from the first labelled frame of `f` whose ego-motion turns by at least
+  DECISIVE_ROTATION (module docstring); a DataError when none decides."""
+  keys = _sorted_keys(f, path)
+  for k0 in (k for k in keys[:-1] if "flow" in f[k]):
+    frame = _read(f, path, k0, _LABELLED)
+    motion = frame["ego_motion"].astype(np.float64)
+    angle = np.arccos(np.clip((np.trace(motion[:3, :3]) - 1) / 2, -1.0, 1.0))
+    if angle < DECISIVE_ROTATION:
+      continue
+    p = frame["lidar"].astype(np.float64)
+    background = (frame["flow_is_valid"] & (frame["flow_category_indices"] == 0)
+                  & np.isfinite(p).all(1) & np.isfinite(frame["flow"]).all(1))
+    if background.sum() < MIN_POINTS:
+      continue
+    p = p[background]
+    rigid = p @ motion[:3, :3].T + motion[:3, 3] - p
+    residual = float(np.median(np.linalg.norm(frame["flow"][background] - rigid, axis=1)))
+    if residual <= 2e-5 + 0.02 * angle:  # float32 rounding: the flow was made from these points
+      return "ego"
+    if residual >= 0.3 * angle:  # the sensor sits metres from the ego origin
+      return "sensor"
+  raise DataError(path, "cannot tell the frame of 'lidar' (OpenSceneFlow's extract_av2.py stores "
+                  "the up_lidar sensor frame since its commit 2bd9036, the ego frame before; no "
+                  "frame of this file turns enough to tell): give lidar=ego, or lidar=sensor with "
+                  "calibration=AV2_DIR")
+
+
+def read_up_lidar_extrinsic(av2_dir, h5_path) -> np.ndarray:
+  """ego <- up_lidar (4 x 4) of the log `h5_path` was made from:
+  AV2_DIR/<log>/calibration/egovehicle_SE3_sensor.feather, the row sensor_name == "up_lidar"
+  (quaternion qw qx qy qz, translation tx_m ty_m tz_m)."""
+  path = pathlib.Path(av2_dir).expanduser() / pathlib.Path(h5_path).stem / "calibration" / (
+    "egovehicle_SE3_sensor.feather")
+  try:
+    import pyarrow.feather  # pylint: disable=import-outside-toplevel
+  except ImportError:
+    raise DataError(path, "reading AV2 calibration needs pyarrow (pip install pyarrow)") from None
+  try:
+    table = pyarrow.feather.read_table(path).to_pydict()
+  except (OSError, ValueError) as e:
+    raise DataError(path, f"cannot read the AV2 calibration ({e})") from None
+  names = list(table.get("sensor_name", []))
+  if "up_lidar" not in names:
+    raise DataError(path, f"no up_lidar row (sensors: {names})")
+  row = names.index("up_lidar")
+  try:
+    w, x, y, z, *t = (float(table[k][row]) for k in ("qw", "qx", "qy", "qz", "tx_m", "ty_m",
+                                                     "tz_m"))
+  except KeyError as e:
+    raise DataError(path, f"lacks column {e}") from None
+  n = np.sqrt(w * w + x * x + y * y + z * z)
+  w, x, y, z = w / n, x / n, y / n, z / n
+  out = np.eye(4)
+  out[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                 [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                 [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+  out[:3, 3] = t
+  return out
+
+
 # name -> (trailing shape after N, or the whole shape for ego_motion; accepted dtype kinds, words)
 _FIELDS = {"lidar": (None, "f", "N x >= 3 floats"), "ground_mask": ((), "biu", "N bools"),
            "flow": ((3,), "f", "N x 3 floats"), "flow_is_valid": ((), "biu", "N bools"),
            "flow_category_indices": ((), "iu", "N integers"),
-           "ego_motion": ((4, 4), "f", "4 x 4 floats")}
+           "ego_motion": ((4, 4), "f", "4 x 4 floats"), "eval_mask": ((), "biu", "N bools")}
 
 
 def _read(f, path, key, names) -> dict:
@@ -169,6 +314,8 @@ def _read(f, path, key, names) -> dict:
     elif name == "ego_motion":
       ok = a.shape == shape
     else:
+      if name == "eval_mask" and a.ndim == 2 and a.shape[1:] == (1,):
+        a = a[:, 0]  # the challenge's mask files are N x 1
       ok = a.shape == (len(out["lidar"]), *shape)
     if not ok or a.dtype.kind not in kinds:
       n = len(out["lidar"]) if "lidar" in out else "N"

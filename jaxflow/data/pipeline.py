@@ -30,6 +30,9 @@ def _stack(pairs: list[Pair]) -> dict:
   if all(p.has_labels for p in pairs):  # ego-motion flow and labels, for the three-way EPE
     batch["rigid_flow"] = np.stack([p.rigid_flow for p in pairs])
     batch["foreground"] = np.stack([p.foreground for p in pairs])
+  if all(p.category is not None for p in pairs):  # Argoverse 2 labels (jaxflow.av2_eval)
+    batch["category"] = np.stack([p.category for p in pairs])
+    batch["ego_xy"] = np.stack([p.ego_xy for p in pairs])
   return batch
 
 

@@ -18,7 +18,10 @@ class Pair:
 
   LiDAR datasets with ego-motion and labels (opensf) also give, for the three-way EPE
   (`jaxflow.metrics.three_way_epe`), `rigid_flow` (the ego-motion flow of each pc1 point) and
-  `foreground` (bool: the point is on an object); other readers leave them None.
+  `foreground` (bool: the point is on an object); other readers leave them None. Datasets with
+  Argoverse 2 labels also give `category` (N uint8, av2's CATEGORY_TO_INDEX, 0 = background) and
+  `ego_xy` (N x 2: each pc1 point's x, y in its ego frame), for the official breakdown
+  (`jaxflow.av2_eval`); both or neither, and only with rigid_flow.
   """
   pc1: np.ndarray  # N x 3
   pc2: np.ndarray  # M x 3
@@ -27,6 +30,8 @@ class Pair:
   name: str  # source: file or folder path, or e.g. "synthetic_things/train/3"
   rigid_flow: np.ndarray | None = None  # N x 3
   foreground: np.ndarray | None = None  # N bool
+  category: np.ndarray | None = None  # N uint8 (av2 category index)
+  ego_xy: np.ndarray | None = None  # N x 2
 
   def __post_init__(self):
     n = len(self.pc1)
@@ -39,6 +44,11 @@ class Pair:
                                              or self.foreground.shape != (n,)))):
       raise ValueError(f"{self.name}: rigid_flow and foreground must both be given, N x 3 and N "
                        f"(pc1 has {n} points)")
+    if ((self.category is None) != (self.ego_xy is None)
+        or (self.category is not None and (self.rigid_flow is None or self.category.shape != (n,)
+                                           or self.ego_xy.shape != (n, 2)))):
+      raise ValueError(f"{self.name}: category and ego_xy must both be given with rigid_flow, N "
+                       f"and N x 2 (pc1 has {n} points)")
 
   @property
   def has_labels(self) -> bool:
