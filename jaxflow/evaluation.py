@@ -24,7 +24,8 @@ import numpy as np
 
 from tqdm import tqdm
 
-from jaxflow import checkpointing, distributed, export, methods, model_fields, tables, test_time
+from jaxflow import checkpointing, distributed, export, frames, methods, model_fields, tables
+from jaxflow import test_time
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.metrics import METRICS, ThreeWayAverage, format_three_way, per_pair_metrics
@@ -152,6 +153,7 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
   sampled unless num_points None)."""
   predict = model_predict_fn(model, num_iters, refine, optimise, method, method_settings,
                              with_info=method != "network")
+  predict = frames.in_model_frame_jax(predict, frames.dataset_up(dataset))  # opensf's ego: z up
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
   results = _run(predict, (distributed.local_copy(params),), batches, render_dir, total=total,
                  save_dir=save_flows)

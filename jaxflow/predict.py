@@ -8,10 +8,10 @@ r"""Scene flow of your own point files with a trained checkpoint.
     flow_Nx3 = predict_flow(pc1_Nx3, pc2_Mx3)            # from Python (a notebook)
 
 PC1 and PC2 are any file `jaxflow.data.read_points` reads (.npy, .ply, .pcd, KITTI .bin, .xyz/.txt),
-in metres, in one frame: x right, y up, z forward works best (the conventions of the FT3D and KITTI
-readers the models are trained in). The output is float32 N x 3 (.npy; --out FLOW.txt or FLOW.csv
-writes the same rows as text), one row per point of PC1, in file order: row i is the flow of the
-i-th point of PC1 that read_points keeps. read_points drops rows with
+in metres, in the models' frame (x left, y up, z forward, jaxflow.frames) or say --up z (the
+default with --lidar): rotated into it and the flow back. The output is float32 N x 3 (.npy; --out
+FLOW.txt or FLOW.csv writes the same rows as text), one row per point of PC1, in file order: row i
+is the flow of the i-th point of PC1 that read_points keeps. read_points drops rows with
 a non-finite coordinate; when it does, the count is printed on stderr and those rows have no output
 row (the output aligns with the finite rows of PC1, in their order).
 
@@ -69,7 +69,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import evaluation, export, geometry, ground, methods, test_time
+from jaxflow import evaluation, export, frames, geometry, ground, methods, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -167,8 +167,8 @@ class Predictor:
     the range cut (jaxflow.ground) before the model; removed points get the ego-motion flow."""
     kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
     clouds = [_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
-    return ground.raw_sweep_flow(lambda a, b: self(a, b, names=kept_names, **kwargs), *clouds,
-                                 up=up, max_range=max_range, names=names)
+    model_fn = frames.in_model_frame(lambda a, b: self(a, b, names=kept_names, **kwargs), up)
+    return ground.raw_sweep_flow(model_fn, *clouds, up=up, max_range=max_range, names=names)
 
 
 _optimise_flow = jax.jit(methods.optimise_flow, static_argnums=3)
@@ -298,7 +298,8 @@ def _define_flags():
                       "green) as this PNG.")
   flags.DEFINE_bool("lidar", False, "Raw sweeps: remove the ground (plane fit along --up) and the "
                     "points beyond --max-range before the model; those get the ego-motion flow.")
-  flags.DEFINE_enum("up", "z", ["x", "y", "z"], "--lidar: the up axis (z: LiDAR; y: camera frame).")
+  flags.DEFINE_enum("up", "z", ["x", "y", "z"], "Up axis (z: LiDAR; y: the models' frame); clouds "
+                    "rotated into the models' frame, flow back. Default: z with --lidar, else y.")
   flags.DEFINE_float("max-range", ground.DEFAULT_MAX_RANGE, "--lidar: keep the points within this "
                      "horizontal distance (m) of the sensor; 0: all.")
   flags.DEFINE_string("save-flows", None, "Also write the flow into this folder as NAME.npy, NAME "
@@ -349,8 +350,9 @@ def main(argv):
     flow_Nx3, sweep = predictor.lidar(pc1, pc2, up=FLAGS.up, max_range=FLAGS["max-range"].value,
                                       **kwargs)
     print(f"note: {sweep.note()}", file=sys.stderr)
-  else:
-    flow_Nx3 = predictor(pc1, pc2, **kwargs)
+  else:  # an --up given without --lidar rotates too (jaxflow.frames); by default: the model frame
+    up = FLAGS.up if FLAGS["up"].present else frames.MODEL_UP
+    flow_Nx3 = frames.in_model_frame(lambda a, b: predictor(a, b, **kwargs), up)(pc1, pc2)
   flow_Nx3 = flow_Nx3.astype(np.float32)
   written = []
   if FLAGS.out:

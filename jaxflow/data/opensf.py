@@ -15,8 +15,9 @@ pc1 = lidar(t0)[:, :3], pc2 = lidar(t1)[:, :3]. Options after the folder (", key
   ground=remove (default) | keep: remove each cloud's `ground_mask` points;
   max_range=35 (default; 0 keeps all): keep the points within this many metres in xy;
   frame=ego (default, as stored: x forward, y left, z up) | camera: the clouds and flows rotated
-    into the benchmark readers' frame (x left, y up, z forward: (x, y, z) -> (y, z, x)), the frame
-    the shipped model was trained in; the metrics do not change under it.
+    into the models' frame (x left, y up, z forward: (x, y, z) -> (y, z, x), a proper rotation;
+    jaxflow.frames); evaluation rotates ego clouds into it before the model and the flow back
+    after (frames.dataset_up), so either gives the same flow; the metrics do not change under it.
 mask = flow_is_valid; Pair.rigid_flow = ego_motion applied to pc1, minus pc1; Pair.foreground =
 flow_category_indices != 0 (the three-way EPE, `jaxflow.metrics.three_way_epe`). Errors name the
 file and the group. A split is a subfolder (train, val, test; default train).
@@ -33,7 +34,7 @@ from jaxflow.errors import DataError
 
 DEFAULTS = {"ground": "remove", "max_range": 35.0, "frame": "ego"}
 CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera")}
-TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward)
+TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward): frames.to_model
 
 
 def parse_spec(arg: str) -> tuple[str, dict]:
