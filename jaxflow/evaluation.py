@@ -81,7 +81,8 @@ def _process_batches(dataset, batch_size: int, num_points: int | None, seed: int
   return batches, sum(min(batch_size, len(dataset) - s) for s in starts)
 
 
-def _run(predict, args, batches, render_dir=None, compiled=None, total=None, save_dir=None) -> dict:
+def _run(predict, args, batches, render_dir=None, compiled=None, total=None, save_dir=None,
+         up="y") -> dict:
   """Averages the metrics of `predict(*args, pc1, pc2)` over the pairs of `batches` (this
   process's; the sums are added over processes). `compiled` caches the compiled `predict` by input
   shapes (compiled before timing) across calls; `total`: the pairs expected, for the progress bar.
@@ -123,7 +124,7 @@ def _run(predict, args, batches, render_dir=None, compiled=None, total=None, sav
         saver.add(batch, pred)
       bar.update(int(valid.sum()))
       if render_dir is not None:
-        _render(render_dir, batch, np.asarray(pred))
+        _render(render_dir, batch, np.asarray(pred), up)
   summed = distributed.sum_over_processes([*sums.values(), pairs, seconds, *convergence])
   totals, (pairs, seconds), convergence = summed[:len(METRICS)], summed[-6:-4], summed[-4:]
   sums, pairs = dict(zip(METRICS, totals)), int(pairs)
@@ -156,7 +157,7 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
   predict = frames.in_model_frame_jax(predict, frames.dataset_up(dataset))  # opensf's ego: z up
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
   results = _run(predict, (distributed.local_copy(params),), batches, render_dir, total=total,
-                 save_dir=save_flows)
+                 save_dir=save_flows, up=frames.dataset_up(dataset))
   results["output"] = _output_name(refine, optimise)
   results.update(methods.describe(method, method_settings or methods.settings(method)))
   if optimise.steps:
@@ -208,19 +209,12 @@ def evaluate_zero_flow(dataset, *, num_points: int | None, batch_size: int, seed
   return _run(_zero_flow, (), batches, total=total)
 
 
-def _render(render_dir, batch, pred_BxNx3):
+def _render(render_dir, batch, pred_BxNx3, up="y"):
   try:
     from jaxflow import viz
   except ImportError as e:
     raise ConfigError(f"--render needs the jaxflow.viz module, which cannot be imported ({e})")
-  Path(render_dir).mkdir(parents=True, exist_ok=True)
-  for i, name in enumerate(batch["names"]):
-    if not batch["pair_valid"][i]:
-      continue
-    stem = str(name).strip("/").replace("/", "_").replace(":", "_")
-    viz.render_pair(batch["pc1"][i], batch["pc2"][i], pred_BxNx3[i],
-                    Path(render_dir) / f"{stem}.png", gt=batch["flow"][i], title=str(name),
-                    mask=batch["mask"][i] if "mask" in batch else None)
+  viz.render_batch(render_dir, batch, pred_BxNx3, up)
 
 
 def format_table(rows) -> str:

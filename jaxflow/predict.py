@@ -294,8 +294,8 @@ def _define_flags():
                     "of --corr-chunk rows (memory linear in the points).")
   flags.DEFINE_integer("corr-chunk", DEFAULT_CORR_CHUNK, "Rows per chunk with --full.")
   flags.DEFINE_integer("seed", 0, "Seed of the sampling of larger clouds.")
-  flags.DEFINE_string("render", None, "Also save the Fig. 2 view (pc1 blue, pc2 red, pc1 + flow "
-                      "green) as this PNG.")
+  flags.DEFINE_string("render", None, "Also draw the flow: FILE.png a top view in --up (speed "
+                      "relative to the ego-motion), FILE.html a 3D viewer (extra 'viewer').")
   flags.DEFINE_bool("lidar", False, "Raw sweeps: remove the ground (plane fit along --up) and the "
                     "points beyond --max-range before the model; those get the ego-motion flow.")
   flags.DEFINE_enum("up", "z", ["x", "y", "z"], "Up axis (z: LiDAR; y: the models' frame); clouds "
@@ -384,9 +384,10 @@ def main(argv):
           file=sys.stderr)
   if FLAGS.render:
     from jaxflow import viz  # pylint: disable=import-outside-toplevel
-    viz.render_pair(pc1, pc2, flow_Nx3, FLAGS.render,
-                    title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
-    print(f"{FLAGS.render}: Fig. 2 view", file=sys.stderr)
+    viz.render(FLAGS.render, pc1, pc2, flow_Nx3, up=FLAGS.up if FLAGS.lidar else up,
+               sweep=sweep if FLAGS.lidar else None,
+               title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
+    print(f"{FLAGS.render}: top view (jaxflow.viz) or 3D viewer (.html)", file=sys.stderr)
 
 
 def run():
