@@ -346,12 +346,12 @@ def main(argv):
   kwargs = dict(num_iters=num_iters, max_points=max_points, full=FLAGS.full,
                 corr_chunk=FLAGS["corr-chunk"].value, seed=FLAGS.seed, names=(pc1_path, pc2_path),
                 optimise=optimise)
+  up = FLAGS.up if FLAGS["up"].present or FLAGS.lidar else frames.MODEL_UP  # jaxflow.frames
   if FLAGS.lidar:
     flow_Nx3, sweep = predictor.lidar(pc1, pc2, up=FLAGS.up, max_range=FLAGS["max-range"].value,
                                       **kwargs)
     print(f"note: {sweep.note()}", file=sys.stderr)
-  else:  # an --up given without --lidar rotates too (jaxflow.frames); by default: the model frame
-    up = FLAGS.up if FLAGS["up"].present else frames.MODEL_UP
+  else:  # an --up given without --lidar rotates too; by default: the model frame
     flow_Nx3 = frames.in_model_frame(lambda a, b: predictor(a, b, **kwargs), up)(pc1, pc2)
   flow_Nx3 = flow_Nx3.astype(np.float32)
   written = []
@@ -383,10 +383,9 @@ def main(argv):
           "two scans of one scene at a similar density; this flow is unlikely to mean much",
           file=sys.stderr)
   if FLAGS.render:
-    from jaxflow import viz  # pylint: disable=import-outside-toplevel
-    viz.render(FLAGS.render, pc1, pc2, flow_Nx3, up=FLAGS.up if FLAGS.lidar else up,
-               sweep=sweep if FLAGS.lidar else None,
-               title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
+    from jaxflow import viewer  # pylint: disable=import-outside-toplevel
+    viewer.render(FLAGS.render, pc1, pc2, flow_Nx3, up=up, sweep=sweep if FLAGS.lidar else None,
+                  title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
     print(f"{FLAGS.render}: top view (jaxflow.viz) or 3D viewer (.html)", file=sys.stderr)
 
 

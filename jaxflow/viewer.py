@@ -1,6 +1,7 @@
 """A 3D viewer of a scene-flow pair: one self-contained, interactive HTML page (plotly).
 
     write_html("flow.html", pc1_Nx3, pc2_Mx3, flow_Nx3, up="z", ego_flow=ego_Nx3, ground1=g_N)
+    render("flow.png" or "flow.html", pc1_Nx3, pc2_Mx3, flow_Nx3, up="z", sweep=info)  # predict's
     python -m jaxflow.predict s1.bin s2.bin --lidar --out flow.npy --render flow.html
 
 Layers (each switched on and off by clicking its legend entry): pc1 (blue), pc2 (red),
@@ -16,14 +17,13 @@ import pathlib
 
 import numpy as np
 
-from jaxflow import frames
+from jaxflow import frames, viz
 from jaxflow.errors import ConfigError
 
 MAX_POINTS = 40000  # per layer: a seeded random subset above this (the page stays responsive)
-DYNAMIC = 0.05  # metres: dynamic when the speed relative to the ego-motion reaches this (AV2's)
-SPEED_RANGE = (0.01, 1.0)  # metres, the log colour scale (as jaxflow.viz)
-COLOURS = {"pc1": "#1f4fd6", "pc2": "#d62728", "pc1 + flow": "#15a336", "removed ground": "#a0a0a0",
-           "dynamic": "#e8175d"}
+DYNAMIC, SPEED_RANGE = viz.DYNAMIC, viz.SPEED_RANGE  # 5 cm (AV2's dynamic), the log colour scale
+COLOURS = {"pc1": "#1f4fd6", "pc2": "#d62728", "pc1 + flow": "#15a336",
+           "removed ground": "#a0a0a0", "dynamic": "#e8175d"}
 
 
 def _plotly():
@@ -115,3 +115,18 @@ def write_html(path, pc1_Nx3, pc2_Mx3, flow_Nx3, **kwargs) -> pathlib.Path:
   path.parent.mkdir(parents=True, exist_ok=True)
   fig.write_html(path, include_plotlyjs=True, full_html=True)
   return path
+
+
+def render(path, pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", sweep=None, title=None, **kwargs):
+  """predict's --render: by the suffix of `path`, .png the top view (jaxflow.viz.render_sweep) or
+  .html this page. `sweep` (jaxflow.ground.SweepInfo of predict --lidar) gives the
+  ego-motion, the removed ground and the range; kwargs go to the view."""
+  if sweep is not None:
+    kwargs = dict(ego_flow=sweep.motion.flow(pc1_Nx3), ground1=sweep.planes[0].ground(pc1_Nx3),
+                  ground2=sweep.planes[1].ground(pc2_Mx3), max_range=sweep.max_range, **kwargs)
+  suffix = pathlib.Path(path).suffix.lower()
+  if suffix == ".html":
+    return write_html(path, pc1_Nx3, pc2_Mx3, flow_Nx3, up=up, title=title, **kwargs)
+  if suffix != ".png":
+    raise ConfigError(f"--render {path}: expected a .png (picture) or .html (3D viewer) file")
+  return viz.render_sweep(pc1_Nx3, pc2_Mx3, flow_Nx3, path, up=up, title=title, **kwargs)

@@ -6,17 +6,15 @@ imports this module keeps its inline plots).
     render_sweep(pc1_Nx3, pc2_Mx3, flow_Nx3, "top.png", up="z", ego_flow=ego_Nx3,
                  ground1=ground_N, max_range=35.0)   # a raw sweep from above, residual speed
     render_error(pc1_Nx3, flow_Nx3, flow_gt_Nx3, "error.png")            # per-point EPE, clipped
-    render(path, pc1_Nx3, pc2_Mx3, flow_Nx3, up="z", ...)  # by suffix: .png top view, .html 3D
     plot_learning_curves("runs/x/metrics.jsonl", "curve.png")            # jaxflow.curves' plot
 
-Clouds are in a frame named by its up axis (jaxflow.frames): up "y" is the readers' and models'
-frame (x left, y up, z forward: FT3D after its flip, KITTI), up "z" a LiDAR's (x forward, y left,
-z up). Every view draws up as up and left on the left (never a mirror image). The 3D views put
-the forward axis into the screen and look from behind and above the sensor (elevation 26 deg,
-azimuth 22 deg off the viewing direction). Axes have equal scales and span the points, up to a
-quarter of the span beyond their 0.5th-99.5th percentiles: the far returns of a raw sweep outside
-that box are not drawn (the title counts them). To stay quick and legible a cloud above
-`MAX_DRAWN` points is drawn as a seeded random subset of that size (the title says so).
+Clouds are in a frame named by its up axis (jaxflow.frames: "y" the readers' and models', x left,
+y up, z forward; "z" a LiDAR's, x forward, y left, z up). Every view draws up as up and left on
+the left (never a mirror image). The 3D views put the forward axis into the screen and look from
+behind and above the sensor (elevation 26 deg, azimuth 22 deg off the viewing direction). Axes
+have equal scales and span the points, up to a quarter of the span beyond their 0.5th-99.5th
+percentiles: the far returns of a raw sweep outside that box are not drawn (the title counts
+them). A cloud above `MAX_DRAWN` points is drawn as a seeded random subset (the title says so).
 
 The top view of a sweep (`sweep_figure`) draws the region the flow was estimated on (`max_range`
 metres of horizontal distance), up out of the page, forward up the page: pc1 coloured by its
@@ -41,7 +39,6 @@ import mpl_toolkits.mplot3d  # noqa: F401  (registers the "3d" projection)
 import numpy as np
 
 from jaxflow import curves, frames
-from jaxflow.errors import ConfigError
 
 BLUE, RED, GREEN = "#1f4fd6", "#d62728", "#15a336"  # pc1, pc2, pc1 + flow (paper Fig. 2)
 ELEVATION, AZIMUTH = 26.0, -112.0  # degrees; azimuth -90 looks straight down +z (depth)
@@ -245,7 +242,8 @@ def residual_speed(flow_Nx3, ego_flow=None) -> np.ndarray:
   """|flow - ego_flow| (m per frame, N): each point's motion relative to the ego-motion; |flow|
   when `ego_flow` is None."""
   flow = np.asarray(flow_Nx3, np.float64)
-  return np.linalg.norm(flow if ego_flow is None else flow - np.asarray(ego_flow, np.float64), axis=1)
+  rel = flow if ego_flow is None else flow - np.asarray(ego_flow, np.float64)
+  return np.linalg.norm(rel, axis=1)
 
 
 def _horizontal(points_Nx3, up):
@@ -256,9 +254,7 @@ def _horizontal(points_Nx3, up):
 
 
 def _top_limits(clouds, up, max_range):
-  if max_range:
-    return np.array([-max_range, -max_range]), np.array([max_range, max_range])
-  lo, hi = view_limits(clouds, up)
+  lo, hi = (-np.full(2, max_range), np.full(2, max_range)) if max_range else view_limits(clouds, up)
   return lo[:2], hi[:2]
 
 
@@ -274,9 +270,10 @@ def _top_axes(ax, limits, up, title):
 
 
 def _in_view(points_Nx3, limits, up):
-  h, v = _horizontal(points_Nx3, up)
-  (lo, hi) = limits
-  return (h >= lo[0]) & (h <= hi[0]) & (v >= lo[1]) & (v <= hi[1])
+  """In the view's box and, when it is a range's (a square of side 2 R), within R horizontally."""
+  (h, v), (lo, hi) = _horizontal(points_Nx3, up), limits
+  inside = (h >= lo[0]) & (h <= hi[0]) & (v >= lo[1]) & (v <= hi[1])
+  return inside & (np.hypot(h, v) < hi[0]) if np.allclose(-lo, hi) else inside
 
 
 def _speed_panel(fig, ax, pc1, values, ground1, limits, up, title, label, name):
@@ -296,11 +293,9 @@ def _speed_panel(fig, ax, pc1, values, ground1, limits, up, title, label, name):
     ax.legend(loc="lower left", fontsize=7, markerscale=4, frameon=True)
 
 
-def _stats(values) -> str:
-  if not len(values):
-    return "no points"
-  return (f"median {100 * np.median(values):.1f} cm, {100 * np.mean(values >= DYNAMIC):.0f}% "
-          f">= {100 * DYNAMIC:.0f} cm")
+def _stats(v) -> str:
+  return f"median {100 * np.median(v):.1f} cm, {100 * np.mean(v >= DYNAMIC):.0f}% >= 5 cm" if len(
+    v) else "no points"
 
 
 def sweep_figure(pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", ego_flow=None, ground1=None,
@@ -334,9 +329,8 @@ def sweep_figure(pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", ego_flow=None, groun
                else "|flow| (m), log", "pc1")
   size = float(np.clip(6000.0 / max(len(pc1), 1), 0.4, 6.0))
   ax = axes[1]
-  for cloud, g, colour, s, alpha, label in (
-      (pc1 + flow, ground1, GREEN, 3.0 * size, 0.35, "pc1 + flow"), (pc2, ground2, RED, size, 0.9,
-                                                                    "pc2")):
+  for cloud, g, colour, s, alpha, label in ((pc1 + flow, ground1, GREEN, 3 * size, 0.35, "pc1 + "
+                                             "flow"), (pc2, ground2, RED, size, 0.9, "pc2")):
     keep = ~g & _in_view(cloud, limits, up)
     ax.scatter(*_horizontal(cloud[keep], up), s=s, c=colour, alpha=alpha, linewidths=0,
                label=label)
@@ -361,22 +355,6 @@ def sweep_figure(pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", ego_flow=None, groun
 def render_sweep(pc1_Nx3, pc2_Mx3, flow_Nx3, path, **kwargs) -> pathlib.Path:
   """Saves `sweep_figure(pc1, pc2, flow, **kwargs)` as a PNG at `path`."""
   return _save(sweep_figure(pc1_Nx3, pc2_Mx3, flow_Nx3, **kwargs), path)
-
-
-def render(path, pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", sweep=None, title=None, **kwargs):
-  """predict's --render: by the suffix of `path`, .png the top view (`render_sweep`) or .html the
-  3D viewer (jaxflow.viewer). `sweep` (jaxflow.ground.SweepInfo of predict --lidar) gives the
-  ego-motion, the removed ground and the range; kwargs go to the view."""
-  if sweep is not None:
-    kwargs = dict(ego_flow=sweep.motion.flow(pc1_Nx3), ground1=sweep.planes[0].ground(pc1_Nx3),
-                  ground2=sweep.planes[1].ground(pc2_Mx3), max_range=sweep.max_range, **kwargs)
-  suffix = pathlib.Path(path).suffix.lower()
-  if suffix == ".html":
-    from jaxflow import viewer  # pylint: disable=import-outside-toplevel
-    return viewer.write_html(path, pc1_Nx3, pc2_Mx3, flow_Nx3, up=up, title=title, **kwargs)
-  if suffix != ".png":
-    raise ConfigError(f"--render {path}: expected a .png (picture) or .html (3D viewer) file")
-  return render_sweep(pc1_Nx3, pc2_Mx3, flow_Nx3, path, up=up, title=title, **kwargs)
 
 
 def render_batch(render_dir, batch, pred_BxNx3, up: str = "y") -> list[pathlib.Path]:

@@ -46,12 +46,11 @@ def test_layers_hold_the_region_and_the_dynamic_points():
 def test_html_without_plotly_names_the_extra(monkeypatch, tmp_path):
   monkeypatch.setitem(sys.modules, "plotly", None)  # import plotly -> ImportError
   monkeypatch.setitem(sys.modules, "plotly.graph_objects", None)
-  from jaxflow import viz  # pylint: disable=import-outside-toplevel
   scene = zup_scene.sweep_pair(n_ground=500)
   with pytest.raises(ConfigError, match=r"jaxflow\[viewer\]"):
-    viz.render(tmp_path / "x.html", scene.pc1, scene.pc2, scene.flow, up="z")
+    viewer.render(tmp_path / "x.html", scene.pc1, scene.pc2, scene.flow, up="z")
   with pytest.raises(ConfigError, match=r"\.png .* or \.html"):
-    viz.render(tmp_path / "x.jpg", scene.pc1, scene.pc2, scene.flow, up="z")
+    viewer.render(tmp_path / "x.jpg", scene.pc1, scene.pc2, scene.flow, up="z")
 
 
 def _screenshot(html, png):
