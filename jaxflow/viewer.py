@@ -89,7 +89,7 @@ def figure(pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", ego_flow=None, ground1=Non
                                   ticktext=["0.01", "0.1", "1"]))
       label = f"pc1 by speed {relative}"
     elif name == "dynamic":
-      marker = dict(size=3.0, color=COLOURS["dynamic"], symbol="circle-open")  # colours show
+      marker = dict(size=2.4, color=COLOURS["dynamic"], symbol="circle-open")  # colours show
       label = f"dynamic (speed >= {DYNAMIC:g} m): {len(points)}"
     traces.append(go.Scatter3d(x=points[:, 0], y=points[:, 1], z=points[:, 2], mode="markers",
                                marker=marker, name=label,
@@ -97,7 +97,7 @@ def figure(pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", ego_flow=None, ground1=Non
                                else "legendonly"))
   eye = np.zeros(3)
   left, up_axis, forward = frames.permutation(up)
-  eye[forward], eye[left], eye[up_axis] = -1.9, 0.6, 1.3  # behind, a little left, above
+  eye[forward], eye[left], eye[up_axis] = -2.1, 0.6, 2.1  # behind, a little left, above
   axis_up = dict(zip("xyz", np.eye(3)[up_axis].tolist()))
   fig = go.Figure(traces)
   fig.update_layout(
