@@ -19,8 +19,9 @@ Why x is left (HPLFlowNet's stored files, the readers' inputs):
 - synthetic_things, synthetic_lidar (jaxflow.data.synthetic): generated in the model frame.
 - opensf (OpenSceneFlow's Argoverse 2 and other LiDAR logs): `frame=ego` (its default) the ego
   frame as stored, x forward, y left, z up; `frame=camera` rotated into the model frame.
-- argoverse (NSFP's npz), flownet3d (FlowNet3D's npz), files, h5: as stored; jaxflow does not
-  rotate them (`dataset_up` says "y": the model frame is assumed).
+- h5 (jaxflow.data.convert): the frame of the reader it was converted from (its `source`).
+- argoverse (NSFP's npz), flownet3d (FlowNet3D's npz), files: as stored; jaxflow does not rotate
+  them (`dataset_up` says "y": the model frame is assumed).
 
 SENSOR CONVENTIONS BY UP AXIS (predict's --up). A sensor frame is named by its up axis, and the
 other two follow cyclically, so that every one is right-handed: up axis k, forward k + 1, left
@@ -110,11 +111,14 @@ def in_model_frame_jax(predict, up: str):
 
 
 def dataset_up(dataset) -> str:
-  """The up axis of a dataset's clouds: "z" for opensf's ego frame, "y" (the model frame) for the
-  other readers (see READERS)."""
+  """The up axis of a dataset's clouds: "z" for opensf's ego frame (also converted to h5), "y" (the
+  model frame) for the other readers (see READERS)."""
   name = str(getattr(dataset, "name", ""))
   if name.startswith("opensf:"):
     return "z" if getattr(dataset, "options", {}).get("frame", "ego") == "ego" else "y"
+  source = str(getattr(dataset, "source", ""))  # h5: the spec it was converted from
+  if name.startswith("h5:") and source.startswith("opensf:"):
+    return "y" if "frame=camera" in source.split(",") else "z"
   return MODEL_UP
 
 

@@ -128,6 +128,11 @@ def test_opensf_reader_keeps_a_left_turn(tmp_path, frame, up):
   ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame}", "val")
   assert frames.dataset_up(ds) == "xyz"[up] == frames.READERS[f"opensf,frame={frame}"][1]
   _check_turns_left(ds[0], up, f"opensf frame={frame}")
+  from jaxflow.data import convert  # pylint: disable=import-outside-toplevel
+  convert.convert(f"opensf:{tmp_path / 'av2'},frame={frame}", "val", tmp_path / "pairs.h5")
+  converted = open_dataset(f"h5:{tmp_path / 'pairs.h5'}", "val")
+  assert frames.dataset_up(converted) == "xyz"[up]  # the frame it was converted from
+  _check_turns_left(converted[0], up, f"h5 of opensf frame={frame}")
 
 
 def test_synthetic_lidar_is_in_the_model_frame():
@@ -182,3 +187,22 @@ def test_predict_up_z_hands_the_network_a_y_up_sweep(predictor, monkeypatch):
                     max_points=2048, num_iters=8)
   epe = lambda f: np.linalg.norm(f - scene.flow[kept], axis=1).mean()
   assert epe(flow[kept]) < 0.85 * epe(as_is)
+
+
+@pytest.mark.slow
+def test_evaluate_rotates_opensf_ego_clouds_for_the_model(tmp_path, predictor):
+  """evaluate on opensf's ego frame (z up) gives the flow of its camera frame (the models'): the
+  clouds are rotated before the network and the flow back (without it the network sees z up)."""
+  from jaxflow import evaluation  # pylint: disable=import-outside-toplevel
+
+  pc1, pc2 = opencv_scene(n=1500)
+  pc2 = pc2 + [0.3, 0.0, 0.5]  # and a drift, so that the flow is not a rotation alone
+  to_ego = lambda p: np.c_[p[:, 2], -p[:, 0], -p[:, 1]]
+  _write_opensf(tmp_path / "av2", to_ego(pc1), to_ego(pc2))
+  results = {}
+  for frame in ("ego", "camera"):
+    ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame}", "val")
+    results[frame] = evaluation.evaluate(predictor.model, predictor.params, ds, num_points=512,
+                                         batch_size=1, num_iters=2)
+  assert results["ego"]["epe"] == pytest.approx(results["camera"]["epe"], rel=1e-4)
+  assert results["ego"]["angle"] == pytest.approx(results["camera"]["angle"], rel=1e-4)

@@ -34,7 +34,7 @@ from jaxflow.errors import DataError
 
 DEFAULTS = {"ground": "remove", "max_range": 35.0, "frame": "ego"}
 CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera")}
-TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward): frames.to_model
+TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward): frames
 
 
 def parse_spec(arg: str) -> tuple[str, dict]:
