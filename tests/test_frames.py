@@ -206,3 +206,20 @@ def test_evaluate_rotates_opensf_ego_clouds_for_the_model(tmp_path, predictor):
                                          batch_size=1, num_iters=2)
   assert results["ego"]["epe"] == pytest.approx(results["camera"]["epe"], rel=1e-4)
   assert results["ego"]["angle"] == pytest.approx(results["camera"]["angle"], rel=1e-4)
+
+
+def test_in_model_frame_rotates_the_clouds_in_and_the_flow_back():
+  """A model that moves every point up by its own height (its y, the models' up) moves a z-up
+  cloud along z, by its z: the clouds went in y up and the flow came back z up; numpy and jax."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+
+  rng = np.random.default_rng(0)
+  pc1, pc2 = rng.normal(size=(50, 3)), rng.normal(size=(40, 3))
+  lift = lambda a, b: a * np.array([0.0, 1.0, 0.0])  # in the model frame: (0, y, 0)
+  flow = frames.in_model_frame(lift, "z")(pc1, pc2)
+  np.testing.assert_allclose(flow, pc1 * [0.0, 0.0, 1.0])  # sensor frame: (0, 0, z)
+  assert frames.in_model_frame(lift, "y") is lift
+  lift_jax = lambda params, a, b: (a * jnp.array([0.0, 1.0, 0.0]), {"steps": params})
+  out, info = frames.in_model_frame_jax(lift_jax, "z")(3, pc1[None], pc2[None])
+  np.testing.assert_allclose(np.asarray(out)[0], pc1 * [0.0, 0.0, 1.0], rtol=1e-6)
+  assert int(info["steps"]) == 3

@@ -1,6 +1,8 @@
 """jaxflow.viz: PNGs are written, and the Fig. 2 view draws what it says."""
 
 import json
+import os
+import pathlib
 
 import numpy as np
 import pytest
@@ -9,6 +11,7 @@ from jaxflow import evaluation, viz
 
 import zup_scene
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
@@ -225,6 +228,10 @@ def test_static_world_15mm_off_looks_different_from_29cm_off():
     assert static.sum() > 100 and moving.sum() > 100
     colours[off] = rgba[static].mean(0)[:3], rgba[moving].mean(0)[:3]
   (s_small, m_small), (s_big, _) = colours[0.015], colours[0.29]
+  if os.environ.get("JAXFLOW_DOCS_IMAGES"):  # the top view docs/users.md shows
+    viz.render_sweep(scene.pc1, scene.pc2, scene.flow + np.float32([0.015, 0, 0]) * ~scene.moving1[
+      :, None], ROOT / "docs" / "images" / "top_view.png", up="z", ego_flow=scene.ego_flow,
+      ground1=scene.ground1, title="synthetic z-up sweep: true flow, static world 1.5 cm off")
   assert np.linalg.norm(s_small - s_big) > 0.3
   assert np.linalg.norm(s_small - m_small) > 0.6
 
