@@ -17,12 +17,10 @@ def plot_learning_curve(workdir) -> Path | None:
   records = [json.loads(l) for l in metrics.read_text().splitlines() if l.strip()]
   if not records:
     return None
-  import matplotlib
+  from matplotlib.figure import Figure  # no pyplot: the session's backend stays (a notebook's)
 
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
-
-  fig, (ax_loss, ax_grad) = plt.subplots(1, 2, figsize=(10, 3.6))
+  fig = Figure(figsize=(10, 3.6))
+  ax_loss, ax_grad = fig.subplots(1, 2)
   for stage in sorted({r["stage"] for r in records}):
     rs = [r for r in records if r["stage"] == stage and r["loss"] is not None]
     ax_loss.plot([r["step"] for r in rs], [r["loss"] for r in rs], label=f"train loss (stage {stage})")
@@ -50,6 +48,5 @@ def plot_learning_curve(workdir) -> Path | None:
   path = workdir / "learning_curve.png"
   tmp = workdir / "learning_curve.tmp.png"
   fig.savefig(tmp, dpi=100)
-  plt.close(fig)
   os.replace(tmp, path)
   return path

@@ -24,7 +24,7 @@ import numpy as np
 
 from tqdm import tqdm
 
-from jaxflow import av2_eval, checkpointing, distributed, methods, submission
+from jaxflow import av2_eval, checkpointing, distributed, frames, methods, submission
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import ConfigError
 from jaxflow.events import FirstPairs
@@ -151,7 +151,10 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
   points evaluated: sampled unless num_points None); `on_pair`: see `_run`."""
   predict = model_predict_fn(model, num_iters, refine, method, method_settings,
                              with_info=method != "network")
+  up = frames.dataset_up(dataset)  # opensf's ego frame: z up; rotated into the model's and back
+  predict = frames.in_model_frame_jax(predict, up)
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
+  batches = ({**batch, "up": up} for batch in batches)  # the clouds' frame, for the pictures
   results = _run(predict, (distributed.local_copy(params),), batches, total=total,
                  on_batch=on_batch, on_pair=on_pair)
   results["output"] = "refined" if refine else "coarse"

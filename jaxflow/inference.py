@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import checkpointing, evaluation, geometry, ground, methods, optimiser
+from jaxflow import checkpointing, evaluation, frames, geometry, ground, methods, optimiser
 from jaxflow.data.pointfiles import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -47,6 +47,7 @@ class Prediction:
   notes: tuple = ()  # non-convergence of an optimisation, a lopsided pair
   used: tuple = ()  # (pc1, pc2) points the method was given (after the lidar cut)
   sweep: object = None  # ground.SweepInfo with lidar=True
+  up: str = frames.MODEL_UP  # the up axis of the clouds (jaxflow.frames): the flow is in their frame
 
 
 def method_settings(method: str, steps: int | None = None, objective: str | None = None):
@@ -108,25 +109,31 @@ class Predictor:
   def predict(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
               max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
               corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
-              lidar: bool = False, up: str = "z",
+              lidar: bool = False, up: str | None = None,
               max_range: float | None = ground.DEFAULT_MAX_RANGE) -> Prediction:
-    """The Prediction of every point of pc1 (the module docstring: sampling, full, lidar)."""
+    """The Prediction of every point of pc1 (the module docstring: sampling, full, lidar). `up`:
+    the clouds' up axis (default z with lidar, else y, the models' frame; jaxflow.frames): the
+    clouds are rotated into the models' frame for the method and the flow back."""
     kwargs = dict(num_iters=num_iters, max_points=max_points, full=full, corr_chunk=corr_chunk,
                   seed=seed)
+    up = up or ("z" if lidar else frames.MODEL_UP)
     if not lidar:
-      return self._predict(as_cloud(pc1_Nx3, names[0], self.min_points),
-                           as_cloud(pc2_Mx3, names[1], self.min_points), **kwargs)
+      inner = self._predict(frames.to_model(as_cloud(pc1_Nx3, names[0], self.min_points), up),
+                            frames.to_model(as_cloud(pc2_Mx3, names[1], self.min_points), up),
+                            **kwargs)
+      return dataclasses.replace(inner, flow=frames.from_model(inner.flow, up), up=up)
     kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
     inner = []  # the Prediction of the kept points (this call's own)
 
-    def estimate(kept1, kept2):
+    def estimate(kept1, kept2):  # in the models' frame (frames.in_model_frame)
       inner.append(self._predict(as_cloud(kept1, kept_names[0], self.min_points),
                                  as_cloud(kept2, kept_names[1], self.min_points), **kwargs))
       return inner[-1].flow
 
     clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
-    flow, sweep = ground.raw_sweep_flow(estimate, *clouds, up=up, max_range=max_range, names=names)
-    return dataclasses.replace(inner[-1], flow=np.asarray(flow, np.float32), sweep=sweep)
+    flow, sweep = ground.raw_sweep_flow(frames.in_model_frame(estimate, up), *clouds, up=up,
+                                        max_range=max_range, names=names)
+    return dataclasses.replace(inner[-1], flow=np.asarray(flow, np.float32), sweep=sweep, up=up)
 
   def _predict(self, pc1_Nx3, pc2_Mx3, num_iters, max_points, full, corr_chunk, seed):
     if num_iters < 1:
@@ -240,7 +247,7 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
                  steps: int | None = None, objective: str | None = None,
                  num_iters: int = DEFAULT_ITERS, max_points: int | None = DEFAULT_MAX_POINTS,
                  full: bool = False, corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
-                 predictor: Predictor | None = None, lidar: bool = False, up: str = "z",
+                 predictor: Predictor | None = None, lidar: bool = False, up: str | None = None,
                  max_range: float | None = ground.DEFAULT_MAX_RANGE) -> np.ndarray:
   """Flow N x 3 (float32) of every point of pc1 towards pc2 by `method` (default DEFAULT_METHOD,
   `optimise`, as `python -m jaxflow.predict`); the checkpoint (None: the shipped one) is loaded once

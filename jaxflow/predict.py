@@ -9,8 +9,8 @@ r"""Scene flow of your own point files (jaxflow-predict): the flow of every poin
 From Python: `jaxflow.inference.predict_flow(pc1_Nx3, pc2_Mx3, method=...)`, the same defaults.
 
 PC1 and PC2 are any file `jaxflow.data.read_points` reads (.npy, .ply, .pcd, KITTI .bin, .xyz/.txt),
-in metres, in one frame: x right, y up, z forward works best (the conventions of the FT3D and KITTI
-readers the models are trained in). The output is float32 N x 3 (.npy; --out FLOW.txt or FLOW.csv
+in metres, in the models' frame (x left, y up, z forward; jaxflow.frames), or with --up z (the
+default with --lidar) or x: then rotated into it and the flow back. The output is float32 N x 3 (.npy; --out FLOW.txt or FLOW.csv
 writes the same rows as text), one row per point of PC1, in file order: row i is the flow of the
 i-th point of PC1 that read_points keeps. read_points drops rows with a non-finite coordinate; when
 it does, the count is printed on stderr and those rows have no output row.
@@ -40,8 +40,9 @@ which stay the checkpoint's unless given as --config.model.FIELD=V (e.g.
 a stage-1 one the last iteration's.
 
 Outputs: --out FILE; --save_flows DIR writes DIR/NAME.npy, NAME made from "PC1,PC2" as evaluate.py
---save_flows names its pairs (jaxflow.export); --render FILE.png the Fig. 2 view of this pair
-(evaluate.py's --render_dir DIR: one picture per pair).
+--save_flows names its pairs (jaxflow.export); --render FILE.png a top view of this pair in its up
+axis, FILE.html a 3D viewer (jaxflow.viewer; evaluate.py's --render_dir DIR: pictures of every
+pair).
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
 than the model's neighbourhood config.model.knn) prints one line naming the file and the problem and
@@ -69,11 +70,13 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   flags.DEFINE_string("out", None, "Write the flow here, one row per point of PC1: .npy "
                       "(float32) or text, .txt (x y z per line) or .csv.")
   cli.define_run_flags(default_method)
-  flags.DEFINE_string("render", None, "Also save the Fig. 2 view (pc1 blue, pc2 red, pc1 + flow "
-                      "green) of this pair as this PNG file.")
+  flags.DEFINE_string("render", None, "Also draw the flow of this pair: FILE.png a top view in --up "
+                      "(speed relative to the ego-motion), FILE.html a 3D viewer (extra 'viewer').")
   flags.DEFINE_bool("lidar", False, "Raw sweeps: remove the ground (plane fit along --up) and the "
                     "points beyond --max_range before the method; those get the ego-motion flow.")
-  flags.DEFINE_enum("up", "z", ["x", "y", "z"], "--lidar: the up axis (z: LiDAR; y: camera frame).")
+  flags.DEFINE_enum("up", None, ["x", "y", "z"], "The clouds' up axis (z: LiDAR; y: the models' "
+                    "frame): rotated into the models' frame, the flow back. Default: z with "
+                    "--lidar, else y.")
   flags.DEFINE_float("max_range", ground.DEFAULT_MAX_RANGE, "--lidar: keep the points within this "
                      "horizontal distance (m) of the sensor; 0: all.")
   flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
@@ -115,6 +118,7 @@ def main(argv):
     pc1, pc2, num_iters=num_iters, max_points=max_points, full=not max_points,
     corr_chunk=corr_chunk, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=FLAGS.lidar,
     up=FLAGS.up, max_range=FLAGS.max_range)
+  up = prediction.up
   if prediction.sweep is not None:
     print(f"note: {prediction.sweep.note()}", file=sys.stderr)
   flow_Nx3 = prediction.flow
@@ -145,10 +149,10 @@ def main(argv):
   for warning in warnings:
     print(f"warning: {warning}", file=sys.stderr)
   if FLAGS.render:
-    from jaxflow import viz  # pylint: disable=import-outside-toplevel  (matplotlib: only here)
-    viz.render_pair(pc1, pc2, flow_Nx3, FLAGS.render,
-                    title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
-    print(f"{FLAGS.render}: Fig. 2 view", file=sys.stderr)
+    from jaxflow import viewer  # pylint: disable=import-outside-toplevel  (matplotlib: only here)
+    viewer.render(FLAGS.render, pc1, pc2, flow_Nx3, up=up, sweep=prediction.sweep,
+                  title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
+    print(f"{FLAGS.render}: top view (jaxflow.viz) or 3D viewer (.html)", file=sys.stderr)
 
 
 def run(default_method: str = inference.DEFAULT_METHOD, description: str | None = None):

@@ -40,21 +40,12 @@ def report(results: dict, json_path=None):
     Path(json_path).write_text(json.dumps(results, indent=2) + "\n")
 
 
-def pair_stem(name) -> str:
-  """The picture's file name (without .png) of a pair."""
-  return str(name).strip("/").replace("/", "_").replace(":", "_")
-
-
 def render_batch(render_dir, batch, pred_BxNx3):
-  """The Fig. 2 view (jaxflow.viz) of every real pair of a batch, as RENDER_DIR/NAME.png."""
+  """The views of every real pair of a batch (jaxflow.viz.render_batch: NAME.png and NAME_top.png
+  in RENDER_DIR), in the batch's up axis ("up": evaluation gives it; y, the models', otherwise)."""
   try:
     from jaxflow import viz  # pylint: disable=import-outside-toplevel  (matplotlib: only here)
   except ImportError as e:
     raise ConfigError(f"--render_dir needs the jaxflow.viz module, which cannot be imported ({e})")
   Path(render_dir).mkdir(parents=True, exist_ok=True)
-  for i, name in enumerate(batch["names"]):
-    if not batch["pair_valid"][i]:
-      continue
-    viz.render_pair(batch["pc1"][i], batch["pc2"][i], pred_BxNx3[i],
-                    Path(render_dir) / f"{pair_stem(name)}.png", gt=batch["flow"][i],
-                    title=str(name), mask=batch["mask"][i] if "mask" in batch else None)
+  viz.render_batch(render_dir, batch, pred_BxNx3, batch.get("up", "y"))

@@ -15,8 +15,9 @@ pc1 = lidar(t0)[:, :3], pc2 = lidar(t1)[:, :3]. Options after the folder (", key
   ground=remove (default) | keep: remove each cloud's `ground_mask` points;
   max_range=35 (default; 0 keeps all): keep the points within this many metres in xy;
   frame=ego (default, as stored: x forward, y left, z up) | camera: the clouds and flows rotated
-    into the benchmark readers' frame (x left, y up, z forward: (x, y, z) -> (y, z, x)), the frame
-    the shipped model was trained in; the metrics do not change under it.
+    into the models' frame (x left, y up, z forward: (x, y, z) -> (y, z, x), a proper rotation;
+    jaxflow.frames); evaluation rotates ego clouds into it before the model and the flow back
+    after (frames.dataset_up), so either gives the same flow; the metrics do not change under it.
   region=disc (default: the cuts above) | challenge: the Argoverse 2 challenge's points, pc1 =
     the frame's `eval_mask` points in file order where the file has them (then only the frames
     with an eval_mask are pairs, as the challenge evaluates), else the non-ground points with
@@ -57,7 +58,7 @@ CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera"),
            "region": ("disc", "challenge"), "lidar": ("auto", "ego", "sensor")}
 CHALLENGE_BOX_M = 50.0  # the challenge's points: non-ground, |x|, |y| <= 50 m (ego frame)
 DECISIVE_ROTATION = 5e-4  # rad (0.03 degrees): an ego rotation that tells the lidar frames apart
-TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward)
+TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward): frames
 
 
 def parse_spec(arg: str) -> tuple[str, dict]:

@@ -109,7 +109,8 @@ def _cut_pair(pc1, pc2, keep_N, folder, what: str) -> Pair:
 class FT3D(Dataset):
   """HPLFlowNet FlyingThings3D: ROOT/{train,val}/NNNNNNN/pc1.npy, pc2.npy.
 
-  x and z negated on load, pc1.z < 35 and pc2.z < 35 kept, flow = pc2 - pc1, mask all True.
+  x and z negated on load (stored x right, y up, z backward -> x left, y up, z forward: a rotation
+  about y, jaxflow.frames), pc1.z < 35 and pc2.z < 35 kept, flow = pc2 - pc1, mask all True.
   Splits (see `ft3d_split_positions`): "train" (4910), "val" (2000), "train_all" (17640) from
   train/; "test" is val/ (3824). With fewer than 19640 train/ folders the split rules use each
   folder's number as its position (the full set is numbered 0 .. 19639), and describe() says the
@@ -164,7 +165,8 @@ class FT3D(Dataset):
 class KITTI(Dataset):
   """HPLFlowNet KITTI Scene Flow 2015: ROOT/NNNNNN/pc1.npy, pc2.npy, the 142 benchmark frames only.
 
-  No flip; ground removed (pc1.y and pc2.y both < -1.4); pc1.z < 35 and pc2.z < 35 kept;
+  No flip (stored x left, y up, z forward: the camera's x and y negated, jaxflow.frames); ground
+  removed (pc1.y and pc2.y both < -1.4); pc1.z < 35 and pc2.z < 35 kept;
   flow = pc2 - pc1; mask all True. Folders outside the benchmark list are ignored; a root with
   only some benchmark frames is read with a warning, and describe() says how many.
   """

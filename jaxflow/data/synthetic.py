@@ -10,8 +10,9 @@ that surface point moves in frame 2, in frame 2's sensor coordinates (sensor mot
 
 - synthetic_things: FlyingThings3D-like, in the FT3D reader's convention (after its x, z flip):
   a pinhole camera of FT3D's field of view (960 x 540 px, f = 1050 px: the real samples fill
-  |x/z| <= 0.457, |y/z| <= 0.257), z forward (depth), x right, y vertical (the objects float, as in
-  FT3D, so the sign of y carries no gravity). 5-15 objects (primitives and composites: chairs,
+  |x/z| <= 0.457, |y/z| <= 0.257), z forward (depth), x left, y vertical (the objects float, as in
+  FT3D, so the sign of y carries no gravity; the scenes are mirror-symmetric in x, and x left makes
+  the frame right-handed like the readers': jaxflow.frames). 5-15 objects (primitives and composites: chairs,
   tables, dumbbells, snowmen, mushrooms, arches) centred at 9-32 m before a tilted background wall
   at 28-60 m, often cut by the 35 m limit as FT3D's far backgrounds are; the FT3D reader's cut
   applied. Like the real samples (a random subset of a depth camera's valid pixels) the clouds

@@ -1,0 +1,225 @@
+"""jaxflow.frames: the frame of each reader and of the models, and the rotations between them.
+
+Handedness: a scene turning left (counter-clockwise seen from above, a right-handed rotation about
+up) is written in each reader's stored layout from the published definition of that layout, read
+back, and must still turn left about the up axis jaxflow states for that reader; and predict --up z
+hands the network a proper rotation of the sweep (y up) and returns the flow in the sweep's frame.
+"""
+
+import warnings
+
+import h5py
+import numpy as np
+import pytest
+
+from jaxflow import frames, ground
+from jaxflow.data import open_dataset
+
+import zup_scene
+
+SPIN_DEG = 10.0
+
+
+def kabsch(a_Nx3, b_Nx3) -> np.ndarray:
+  """The proper rotation R (det +1) that best maps the centred a onto the centred b (b ~ R a)."""
+  a, b = a_Nx3 - a_Nx3.mean(0), b_Nx3 - b_Nx3.mean(0)
+  u, _, vt = np.linalg.svd(b.T @ a)
+  d = np.sign(np.linalg.det(u @ vt))
+  return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def turn_about(rot_3x3, axis: int) -> float:
+  """Degrees of a rotation about a coordinate axis, right-handed (its rotation vector's part)."""
+  i, j = [(1, 2), (2, 0), (0, 1)][axis]
+  return float(np.degrees(np.arctan2(rot_3x3[j, i] - rot_3x3[i, j],
+                                     np.trace(rot_3x3) - rot_3x3[axis, axis])))
+
+
+def opencv_scene(n=3000, seed=0):
+  """A cloud in front of a camera in OpenCV's frame (x right, y down, z forward), and the same cloud
+  turned left by SPIN_DEG about the camera's up (-y): a point ahead moves towards -x."""
+  rng = np.random.default_rng(seed)
+  pc1 = rng.uniform([-6, -1.0, 8], [6, 1.2, 20], (n, 3))  # above KITTI's ground cut (y up > -1.4)
+  a = np.radians(SPIN_DEG)
+  c, s = np.cos(a), np.sin(a)
+  # Turning left about up = -y: z (forward) towards -x (left).
+  r = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])
+  centre = np.array([0.0, 0.0, 14.0])
+  pc2 = (pc1 - centre) @ r.T + centre
+  return pc1, pc2
+
+
+def test_rotations_are_proper_and_invert():
+  for up in frames.UP_AXES:
+    r = frames.rotation(up)
+    assert np.isclose(np.linalg.det(r), 1.0), up  # never a mirror
+    np.testing.assert_allclose(r @ r.T, np.eye(3))
+    assert r[1, "xyz".index(up)] == 1.0  # the sensor's up becomes the model's y
+    p = np.random.default_rng(0).normal(size=(5, 3))
+    np.testing.assert_allclose(frames.to_model(p, up), p @ r.T)
+    np.testing.assert_allclose(frames.from_model(frames.to_model(p, up), up), p)
+  # z up (x forward, y left, z up) -> (x left, y up, z forward): OpenSceneFlow's TO_CAMERA order.
+  np.testing.assert_array_equal(frames.to_model(np.array([[1.0, 2, 3]]), "z"), [[2.0, 3, 1]])
+  np.testing.assert_array_equal(frames.rotation("y"), np.eye(3))
+
+
+def _check_turns_left(pair, up_axis: int, where: str):
+  rot = kabsch(pair.pc1.astype(np.float64), (pair.pc1 + pair.flow).astype(np.float64))
+  assert turn_about(rot, up_axis) == pytest.approx(SPIN_DEG, abs=0.1), where
+
+
+def test_ft3d_reader_keeps_a_left_turn(tmp_path):
+  """HPLFlowNet's pixel2pc (f = -1050 in its call, FT3D's negative disparities): x = (u - cx) * -1 /
+  d, y = (v - cy) / d, z = -f / d; the reader's output must turn left about its stated up (y)."""
+  pc1, pc2 = opencv_scene()
+  folder = tmp_path / "ft3d" / "val" / "0000000"
+  folder.mkdir(parents=True)
+  f, cx, cy = 1050.0, 479.5, 269.5
+  for name, p in (("pc1", pc1), ("pc2", pc2)):
+    u, v = f * p[:, 0] / p[:, 2] + cx, f * p[:, 1] / p[:, 2] + cy
+    d = -f / p[:, 2]  # the subset's disparities are negative (its stored z < 0)
+    stored = np.c_[(u - cx) * -1.0 / d, (v - cy) / d, -1.0 * -f / d]
+    np.save(folder / f"{name}.npy", stored.astype(np.float32))
+  pair = open_dataset(f"ft3d:{tmp_path / 'ft3d'}", "test")[0]
+  assert frames.READERS["ft3d"][1] == "y"
+  _check_turns_left(pair, 1, "ft3d")
+  left = pc1[:, 0] < -1  # physically left of the camera: x > 0 in the model frame (x left)
+  assert (pair.pc1[left, 0] > 0).all() and (pair.pc1[:, 2] > 0).all()
+
+
+def test_kitti_reader_keeps_a_left_turn(tmp_path):
+  """HPLFlowNet's KITTI files: the camera's x and y negated (y up, ground near y = -1.6)."""
+  pc1, pc2 = opencv_scene()
+  folder = tmp_path / "kitti" / "000002"
+  folder.mkdir(parents=True)
+  for name, p in (("pc1", pc1), ("pc2", pc2)):
+    np.save(folder / f"{name}.npy", (p * [-1, -1, 1]).astype(np.float32))
+  with warnings.catch_warnings():
+    warnings.simplefilter("ignore")  # 1 of the 142 benchmark frames
+    pair = open_dataset(f"kitti:{tmp_path / 'kitti'}", "test")[0]
+  assert frames.READERS["kitti"][1] == "y"
+  _check_turns_left(pair, 1, "kitti")
+  left = pc1[:, 0] < -1
+  assert (pair.pc1[left, 0] > 0).all() and (pair.pc1[:, 2] > 0).all()
+
+
+def _write_opensf(root, pc1_ego, pc2_ego):
+  (root / "val").mkdir(parents=True)
+  n = len(pc1_ego)
+  with h5py.File(root / "val" / "log.h5", "w") as f:
+    for key, p in (("0", pc1_ego), ("1", pc2_ego)):
+      g = f.create_group(key)
+      g.create_dataset("lidar", data=p.astype(np.float32))
+      g.create_dataset("ground_mask", data=np.zeros(n, bool))
+      g.create_dataset("pose", data=np.eye(4))
+    g = f["0"]
+    g.create_dataset("flow", data=(pc2_ego - pc1_ego).astype(np.float32))
+    g.create_dataset("flow_is_valid", data=np.ones(n, bool))
+    g.create_dataset("flow_category_indices", data=np.zeros(n, np.uint8))
+    g.create_dataset("ego_motion", data=np.eye(4))
+
+
+@pytest.mark.parametrize("frame, up", [("ego", 2), ("camera", 1)])
+def test_opensf_reader_keeps_a_left_turn(tmp_path, frame, up):
+  """Argoverse 2's ego frame: x forward, y left, z up; a left turn is +SPIN_DEG about z."""
+  pc1, pc2 = opencv_scene()
+  to_ego = lambda p: np.c_[p[:, 2], -p[:, 0], -p[:, 1]]  # OpenCV (right, down, forward) -> ego
+  _write_opensf(tmp_path / "av2", to_ego(pc1), to_ego(pc2))
+  ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame}", "val")
+  assert frames.dataset_up(ds) == "xyz"[up] == frames.READERS[f"opensf,frame={frame}"][1]
+  _check_turns_left(ds[0], up, f"opensf frame={frame}")
+  from jaxflow.data import convert  # pylint: disable=import-outside-toplevel
+  convert.convert(f"opensf:{tmp_path / 'av2'},frame={frame}", "val", tmp_path / "pairs.h5")
+  converted = open_dataset(f"h5:{tmp_path / 'pairs.h5'}", "val")
+  assert frames.dataset_up(converted) == "xyz"[up]  # the frame it was converted from
+  _check_turns_left(converted[0], up, f"h5 of opensf frame={frame}")
+
+
+def test_synthetic_lidar_is_in_the_model_frame():
+  """The synthetic driving pairs: ground under the sensor along -y, the road ahead along +z."""
+  pair = open_dataset("synthetic_lidar:1", "test")[0]
+  assert frames.dataset_up(open_dataset("synthetic_lidar:1", "test")) == "y"
+  assert np.median(pair.pc1[:, 2]) > 5 and np.percentile(pair.pc1[:, 1], 2) < -1.0
+
+
+def test_to_model_keeps_a_left_turn():
+  """The z-up sweep's left turn (+SPIN_DEG about z) is one about y after to_model."""
+  pc1 = np.random.default_rng(1).uniform(-10, 10, (500, 3))
+  pc2 = pc1 @ zup_scene.yaw(SPIN_DEG).T
+  rot = kabsch(frames.to_model(pc1, "z"), frames.to_model(pc2, "z"))
+  assert turn_about(rot, 1) == pytest.approx(SPIN_DEG, abs=1e-6)
+
+
+@pytest.fixture(scope="module")
+def predictor():
+  from jaxflow import predict  # pylint: disable=import-outside-toplevel
+  return predict.load_predictor()
+
+
+def test_predict_up_z_hands_the_network_a_y_up_sweep(predictor, monkeypatch):
+  """predict --lidar --up z: the network sees the kept points as (y, z, x) of the sweep (a proper
+  rotation: y up); its flow comes back in the sweep's frame, turning the static world the way the
+  sensor's yaw does, and it is better than handing the network the z-up sweep as it is."""
+  from jaxflow import predict  # pylint: disable=import-outside-toplevel
+
+  scene = zup_scene.sweep_pair(n_ground=3000, reach=40.0)  # 1 m forward, yaw +2 deg (left)
+  seen = []
+  real_call = predict.Predictor.__call__
+
+  def spy(self, a, b, **kwargs):
+    seen.append((np.array(a), np.array(b)))
+    return real_call(self, a, b, **kwargs)
+
+  monkeypatch.setattr(predict.Predictor, "__call__", spy)
+  flow, info = predictor.lidar(scene.pc1, scene.pc2, up="z", max_points=2048, num_iters=8)
+  monkeypatch.undo()
+  (a, _), = seen
+  kept = ground.lidar_keep(scene.pc1, "z", 35.0)[0]  # the ground and range cut, in the sweep
+  assert len(a) == kept.sum() == info.kept[0] and kept.sum() > 0.9 * (~scene.ground1).sum() / 2
+  np.testing.assert_allclose(a, scene.pc1[kept][:, [1, 2, 0]], atol=1e-5)  # (y, z, x): y up
+  assert np.ptp(a[:, 1]) < 5 < np.ptp(a[:, 2])  # heights along y, the road along z
+  static = kept & ~scene.moving1
+  pc1 = scene.pc1.astype(np.float64)
+  turn = turn_about(kabsch(pc1[static], pc1[static] + flow[static]), 2)
+  truth = turn_about(scene.ego_rotation, 2)  # -2 deg: the world turns right, the sensor left
+  assert truth == pytest.approx(-2.0) and turn == pytest.approx(truth, abs=1.5)
+  as_is = predictor(scene.pc1[kept], scene.pc2[ground.lidar_keep(scene.pc2, "z", 35.0)[0]],
+                    max_points=2048, num_iters=8)
+  epe = lambda f: np.linalg.norm(f - scene.flow[kept], axis=1).mean()
+  assert epe(flow[kept]) < 0.85 * epe(as_is)
+
+
+@pytest.mark.slow
+def test_evaluate_rotates_opensf_ego_clouds_for_the_model(tmp_path, predictor):
+  """evaluate on opensf's ego frame (z up) gives the flow of its camera frame (the models'): the
+  clouds are rotated before the network and the flow back (without it the network sees z up)."""
+  from jaxflow import evaluation  # pylint: disable=import-outside-toplevel
+
+  pc1, pc2 = opencv_scene(n=1500)
+  pc2 = pc2 + [0.3, 0.0, 0.5]  # and a drift, so that the flow is not a rotation alone
+  to_ego = lambda p: np.c_[p[:, 2], -p[:, 0], -p[:, 1]]
+  _write_opensf(tmp_path / "av2", to_ego(pc1), to_ego(pc2))
+  results = {}
+  for frame in ("ego", "camera"):
+    ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame}", "val")
+    results[frame] = evaluation.evaluate(predictor.model, predictor.params, ds, num_points=512,
+                                         batch_size=1, num_iters=2)
+  assert results["ego"]["epe"] == pytest.approx(results["camera"]["epe"], rel=1e-4)
+  assert results["ego"]["angle"] == pytest.approx(results["camera"]["angle"], rel=1e-4)
+
+
+def test_in_model_frame_rotates_the_clouds_in_and_the_flow_back():
+  """A model that moves every point up by its own height (its y, the models' up) moves a z-up
+  cloud along z, by its z: the clouds went in y up and the flow came back z up; numpy and jax."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+
+  rng = np.random.default_rng(0)
+  pc1, pc2 = rng.normal(size=(50, 3)), rng.normal(size=(40, 3))
+  lift = lambda a, b: a * np.array([0.0, 1.0, 0.0])  # in the model frame: (0, y, 0)
+  flow = frames.in_model_frame(lift, "z")(pc1, pc2)
+  np.testing.assert_allclose(flow, pc1 * [0.0, 0.0, 1.0])  # sensor frame: (0, 0, z)
+  assert frames.in_model_frame(lift, "y") is lift
+  lift_jax = lambda params, a, b: (a * jnp.array([0.0, 1.0, 0.0]), {"steps": params})
+  out, info = frames.in_model_frame_jax(lift_jax, "z")(3, pc1[None], pc2[None])
+  np.testing.assert_allclose(np.asarray(out)[0], pc1 * [0.0, 0.0, 1.0], rtol=1e-6)
+  assert int(info["steps"]) == 3
