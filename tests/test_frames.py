@@ -125,11 +125,12 @@ def test_opensf_reader_keeps_a_left_turn(tmp_path, frame, up):
   pc1, pc2 = opencv_scene()
   to_ego = lambda p: np.c_[p[:, 2], -p[:, 0], -p[:, 1]]  # OpenCV (right, down, forward) -> ego
   _write_opensf(tmp_path / "av2", to_ego(pc1), to_ego(pc2))
-  ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame}", "val")
+  ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame},lidar=ego", "val")
   assert frames.dataset_up(ds) == "xyz"[up] == frames.READERS[f"opensf,frame={frame}"][1]
   _check_turns_left(ds[0], up, f"opensf frame={frame}")
   from jaxflow.data import convert  # pylint: disable=import-outside-toplevel
-  convert.convert(f"opensf:{tmp_path / 'av2'},frame={frame}", "val", tmp_path / "pairs.h5")
+  convert.convert(f"opensf:{tmp_path / 'av2'},frame={frame},lidar=ego", "val",
+                  tmp_path / "pairs.h5")
   converted = open_dataset(f"h5:{tmp_path / 'pairs.h5'}", "val")
   assert frames.dataset_up(converted) == "xyz"[up]  # the frame it was converted from
   _check_turns_left(converted[0], up, f"h5 of opensf frame={frame}")
@@ -201,7 +202,7 @@ def test_evaluate_rotates_opensf_ego_clouds_for_the_model(tmp_path, predictor):
   _write_opensf(tmp_path / "av2", to_ego(pc1), to_ego(pc2))
   results = {}
   for frame in ("ego", "camera"):
-    ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame}", "val")
+    ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame},lidar=ego", "val")
     results[frame] = evaluation.evaluate(predictor.model, predictor.params, ds, num_points=512,
                                          batch_size=1, num_iters=2)
   assert results["ego"]["epe"] == pytest.approx(results["camera"]["epe"], rel=1e-4)

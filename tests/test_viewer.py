@@ -82,7 +82,7 @@ def test_predict_renders_a_page_that_chromium_draws(tmp_path):
   env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
          "JAX_PLATFORMS": "cpu"}
   run = subprocess.run([sys.executable, "-m", "jaxflow.predict", "sweep1.npy", "sweep2.npy",
-                        "--lidar", "--method", "network", "--max-points", "2048", "--iters", "4",
+                        "--lidar", "--method", "network", "--max_points", "2048", "--iters", "4",
                         "--out", "flow.npy", "--render", "flow.html"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
   assert run.returncode == 0, run.stderr
