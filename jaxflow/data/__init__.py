@@ -4,7 +4,7 @@ Importing the package imports every reader module, each of which registers its f
 `jaxflow.data.registry`.
 """
 
-from jaxflow.data import hdf5, opensf, readers, synthetic  # noqa: F401  (register their formats)
+from jaxflow.data import hdf5, opensf, readers, synthetic, synthetic_sweep  # noqa: F401  (register)
 from jaxflow.data.pipeline import BatchLoader, eval_batches
 from jaxflow.data.pointfiles import read_points
 from jaxflow.data.registry import Dataset, Pair, formats, open_dataset
