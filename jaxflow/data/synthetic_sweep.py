@@ -123,7 +123,8 @@ class _Street:
     return self.along(z) + across
 
   def planes(self):
-    """[(kind, rot, pos, size)] of the ground: road halves (crowned) and sidewalks per segment."""
+    """[(kind, rot, pos, size)] of the ground: road halves (crowned planes) and sidewalks (slabs)
+    per segment of the slope."""
     cuts = [-110.0] + ([self.behind[0]] if self.behind else []) + (
       [self.ahead[0]] if self.ahead else []) + [110.0]
     out = []
@@ -135,10 +136,10 @@ class _Street:
       for side in (-1, 1):
         roll = syn.rotation((0, 0, 1), -side * math.atan(self.crown / self.road))
         pos = (side * self.road / 2, self.along(zc) + self.crown / 2, zc)
-        out.append((pitch @ roll, pos, (self.road / 2, 0, half_z)))
-        walk = 55.0
-        pos = (side * (self.road + walk), self.along(zc) + self.kerb, zc)
-        out.append((pitch, pos, (walk, 0, half_z)))
+        out.append((syn.PLANE, pitch @ roll, pos, (self.road / 2, 0, half_z)))
+        walk, depth = 55.0, 0.6  # a slab: its top is the sidewalk, its side the kerb
+        pos = (side * (self.road + walk), self.along(zc) + self.kerb - depth / 2, zc)
+        out.append((syn.BOX, pitch, pos, (walk, depth / 2, half_z)))
     return out
 
 
@@ -174,8 +175,8 @@ def build_scene(rng, opt: Options = Options()):
     grounds.extend([is_ground] * len(parts))
 
   if opt.ground:
-    for rot, pos, size in street.planes():
-      add([(syn.PLANE, syn._I, syn._Z, size, None)], rot, pos, is_ground=True)
+    for kind, rot, pos, size in street.planes():
+      add([(kind, syn._I, syn._Z, size, None)], rot, pos, is_ground=True)
   road = street.road
   for side in (-1, 1):
     z = rng.uniform(-100, -80)
