@@ -252,13 +252,14 @@ def sweep_pair(split: str, index: int, options: Options = Options()) -> SweepPai
   beams = options.beams or int(rng.choice(BEAMS))
   p1, prim1, noise1 = _cast(scene, 0, rng, options, beams)
   p2, prim2, noise2 = _cast(scene, 1, rng, options, beams)
-  moved = syn.warp(scene, p1, prim1)  # the same surface points in frame 2
+  p1 = p1 + noise1  # the measured point moves with its object
+  moved = syn.warp(scene, p1, prim1)  # the same points in frame 2
   static = dataclasses.replace(scene, obj_P=np.zeros_like(scene.obj_P))
   ego = syn.warp(static, p1, prim1)
   z_up = lambda a_3xN: np.ascontiguousarray((_TO_Z_UP @ a_3xN).T, np.float32)
   a, b = scene.a_Kx3x3[0], scene.b_Kx3[0]  # the static world's (the sensor's) motion
   return SweepPair(
-    pc1=z_up(p1 + noise1), pc2=z_up(p2 + noise2), flow=z_up(moved - p1), ego_flow=z_up(ego - p1),
+    pc1=z_up(p1), pc2=z_up(p2 + noise2), flow=z_up(moved - p1), ego_flow=z_up(ego - p1),
     category=cat_P[prim1], instance=inst_P[prim1], ground=ground_P[prim1], ground2=ground_P[prim2],
     ego_rotation=_TO_Z_UP @ a @ _TO_Z_UP.T, ego_translation=_TO_Z_UP @ b,
     name=f"synthetic_sweep/{split}/{index}")
