@@ -1,21 +1,20 @@
-"""Raw LiDAR sweeps made to look like the training data: ground removal and a range cut.
+"""The ground of raw LiDAR sweeps: one RANSAC plane, or local planes per cell; a range cut.
 
     plane = fit_ground(points_Nx3, up="z")            # RANSAC plane under the lowest points
-    keep_N = ~plane.ground(points_Nx3) & within_range(points_Nx3, "z", 35.0)
-    flow_Nx3, info = raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up="z", max_range=35.0)
+    surface = fit_surface(points_Nx3, up="z")         # a plane per 2 m cell: slopes, crowned roads
+    ground_N = surface.ground(points_Nx3)             # less than 0.25 m above the ground under it
+    keep_N = ~ground_N & within_range(points_Nx3, "z", 35.0)
 
 The benchmark layouts remove ground by height (KITTI's camera frame: y < -1.4) and keep 35 m
-(DESIGN.md section 7); a raw sweep has neither. `raw_sweep_flow` runs a flow estimator on what
-remains and gives every removed point (ground, or beyond the range) the ego-motion flow of a rigid
-fit (`jaxflow.rigid`) to the static part of the estimated flow: ground and far points are static
-world, so the sensor's motion is their flow.
+(DESIGN.md section 7); a raw sweep has neither. `check_ground` and `check_up_axis` refuse a
+"ground" that cannot be one (a wall under a wrong up axis). jaxflow.sweep uses all of it for the
+flow of raw sweep pairs.
 """
 
 import dataclasses
 
 import numpy as np
 
-from jaxflow import rigid
 from jaxflow.errors import ConfigError, DataError
 
 UP_AXES = {"x": 0, "y": 1, "z": 2}
@@ -285,9 +284,10 @@ def check_ground(surface: Surface, ground_N, name: str, up: str):
                     f"({override})")
 
 
-def check_up_axis(points_Nx3, up: str, name: str, seed: int = 0):
+def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float, seed: int = 0):
   """Refuses an up axis perpendicular to the sweep's largest plane when that plane holds a third
-  of the points: the ground is a sweep's largest plane, a wall rarely is."""
+  of the points and more than what was taken as ground (`ground_fraction`): the ground is a
+  sweep's largest plane, a wall rarely is."""
   k = axis(up)
   p = np.asarray(points_Nx3, np.float64)
   rng = np.random.default_rng(seed)
@@ -302,32 +302,12 @@ def check_up_axis(points_Nx3, up: str, name: str, seed: int = 0):
   counts = (np.abs((sample[None] - triples[:, None, 0]) @ normals[..., None])[..., 0]
             < INLIER).sum(1)
   best = int(np.argmax(counts))
-  if counts[best] > len(sample) / 3 and abs(normals[best, k]) < np.cos(np.radians(45)):
+  share = counts[best] / len(sample)
+  if share > 1 / 3 and share > 1.2 * ground_fraction and abs(normals[best, k]) < np.cos(np.radians(45)):
     along = "xyz"[int(np.argmax(np.abs(normals[best])))]
     raise DataError(name, f"the sweep's largest plane ({100 * counts[best] / len(sample):.0f}% of "
                     f"the points) is perpendicular to --up {up}, and is most likely the ground: "
                     f"use --up {along} (or pass ground_limits=False if {up} is right)")
-
-
-@dataclasses.dataclass(frozen=True)
-class SweepInfo:
-  """What `raw_sweep_flow` did: the planes, the points kept and removed, the ego-motion fit."""
-  planes: tuple  # (Plane of pc1, Plane of pc2)
-  ground: tuple  # (pc1, pc2) ground points removed
-  far: tuple  # (pc1, pc2) non-ground points beyond max_range
-  kept: tuple  # (pc1, pc2) points the estimator saw
-  motion: rigid.Motion  # ego-motion: the rigid fit to the static part of the estimated flow
-  max_range: float | None
-
-  def note(self) -> str:
-    p = self.planes[0]
-    return (f"--lidar: ground plane at height {-p.offset:.2f} m along the up axis (tilt "
-            f"{p.tilt_deg:.1f} deg); removed {self.ground[0]} ground and {self.far[0]} points "
-            f"beyond {self.max_range or 'no'} m of PC1 ({self.ground[1]} and {self.far[1]} of "
-            f"PC2); flow estimated on {self.kept[0]} points; the {self.ground[0] + self.far[0]} "
-            f"removed PC1 points get the ego-motion flow of a rigid fit to "
-            f"{int(self.motion.inliers.sum())} static points ({self.motion.angle_deg:.2f} deg, "
-            f"{np.linalg.norm(self.motion.translation):.2f} m)")
 
 
 def lidar_keep(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_RANGE,
@@ -336,24 +316,3 @@ def lidar_keep(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_
   plane = fit_ground(points_Nx3, up, max_range, seed, name)
   ground_N = plane.ground(points_Nx3)
   return ~ground_N & within_range(points_Nx3, up, max_range), ground_N, plane
-
-
-def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
-                   max_range: float | None = DEFAULT_MAX_RANGE,
-                   names=("pc1", "pc2")) -> tuple[np.ndarray, SweepInfo]:
-  """Flow N x 3 of EVERY point of pc1: `flow_fn(pc1_kept, pc2_kept)` on the non-ground points
-  within max_range of both clouds; the removed pc1 points get the ego-motion flow (see the module
-  docstring). Returns the flow and a SweepInfo."""
-  pc1, pc2 = np.asarray(pc1_Nx3, np.float32), np.asarray(pc2_Mx3, np.float32)
-  keep1, ground1, plane1 = lidar_keep(pc1, up, max_range, name=names[0])
-  keep2, ground2, plane2 = lidar_keep(pc2, up, max_range, name=names[1])
-  kept1 = pc1[keep1]
-  flow_kept = np.asarray(flow_fn(kept1, pc2[keep2]), np.float32)
-  motion = rigid.fit_static_motion(kept1, flow_kept)
-  flow = np.empty_like(pc1)
-  flow[keep1] = flow_kept
-  flow[~keep1] = motion.flow(pc1[~keep1])
-  info = SweepInfo(planes=(plane1, plane2), ground=(int(ground1.sum()), int(ground2.sum())),
-                   far=(int((~keep1 & ~ground1).sum()), int((~keep2 & ~ground2).sum())),
-                   kept=(int(keep1.sum()), int(keep2.sum())), motion=motion, max_range=max_range)
-  return flow, info
