@@ -26,12 +26,15 @@ MIN_POINTS = 8
 MAX_SIZE = 14.0  # metres: a larger group is structure (a facade), never moved
 UNEXPLAINED = 0.15  # metres: a point this far from ego-compensated pc2 (seen from above)
 MIN_UNEXPLAINED = 0.15  # an object with fewer unexplained points than this share stands still
-SEARCH, SEARCH_STEP = 4.0, 0.25  # metres: the translation search of an object
+SEARCH, SEARCH_STEP = 3.5, 0.25  # metres: the translation search of an object (3 m a frame)
 TRUNCATE = 0.3  # metres: a point's cost is its bird's-eye distance to pc2, at most this
 MARGIN = 0.02  # metres: a motion replaces standing still when its mean cost is this lower
 RELATIVE_MARGIN = 0.3  # ... and lower by this share of standing still's cost
 LOW_GROUND = 0.05  # metres: "ground" points this high inside a moving object's cells move with it
 ROUNDS = 15
+AZIMUTH_BINS, ELEVATION_BINS = 1200, 360  # the visibility image: 0.3 x 0.5 degrees
+HIDDEN = 0.5  # metres: a point this far behind pc2's return in its direction is hidden
+MIN_SEEN = 0.3  # a motion that leaves fewer of an object's points visible in pc2 is refused
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,11 +92,42 @@ def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion) -> rigid.Motio
   return rigid.Motion(rotation, translation)
 
 
-def _cost3d(tree, points_Kx3) -> float:
-  """Mean truncated 3-D distance of the points to ego-compensated pc2 (the decision's cost: a box
-  slid along its own side still matches seen from above, not in 3-D)."""
+class Visibility:
+  """pc2's nearest return per direction from the frame-2 sensor (a coarse range image): a moved
+  pc1 point behind one of them is hidden in pc2 and neither supports nor refutes a motion."""
+
+  def __init__(self, pc2_Mx3):
+    self.bins = np.full(AZIMUTH_BINS * ELEVATION_BINS, np.inf)
+    flat, r = self._flat(np.asarray(pc2_Mx3, np.float64))
+    np.minimum.at(self.bins, flat, r)
+
+  @staticmethod
+  def _flat(points_Kx3):
+    r = np.linalg.norm(points_Kx3, axis=1)
+    az = np.arctan2(points_Kx3[:, 1], points_Kx3[:, 0])
+    el = np.arcsin(np.clip(points_Kx3[:, 2] / np.maximum(r, 1e-9), -1, 1))
+    i = np.clip(((az + np.pi) / (2 * np.pi) * AZIMUTH_BINS).astype(np.int64), 0, AZIMUTH_BINS - 1)
+    j = np.clip(((el + np.pi / 2) / np.pi * ELEVATION_BINS).astype(np.int64), 0,
+                ELEVATION_BINS - 1)
+    return i * ELEVATION_BINS + j, r
+
+  def hidden(self, points2_Kx3) -> np.ndarray:
+    flat, r = self._flat(points2_Kx3)
+    return self.bins[flat] < r - HIDDEN
+
+
+def _cost3d(tree, points_Kx3, visibility=None, to2=None) -> float:
+  """Mean truncated 3-D distance of the points to ego-compensated pc2 over the points pc2 could
+  see (the decision's cost: a box slid along its own side still matches seen from above, not in
+  3-D); TRUNCATE when pc2 sees too few of them."""
   d, _ = tree.query(points_Kx3, distance_upper_bound=TRUNCATE)
-  return float(np.minimum(d, TRUNCATE).mean())
+  d = np.minimum(d, TRUNCATE)
+  if visibility is not None:
+    seen = ~visibility.hidden(to2.apply(points_Kx3))
+    if seen.mean() < MIN_SEEN:
+      return TRUNCATE
+    d = d[seen]
+  return float(d.mean())
 
 
 def _search(tree, points_Kx3) -> rigid.Motion:
@@ -151,6 +185,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   label[ground1] = -1
   unexplained = _per_point(target, pc1) > UNEXPLAINED
   tree = cKDTree(above2)
+  visibility = Visibility(np.asarray(pc2_Mx3, np.float64))
   rng = np.random.default_rng(seed)
   moved, candidates = [], 0
   order = np.argsort(label, kind="stable")
@@ -169,11 +204,11 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     if start_flow_Nx3 is not None and np.isfinite(start_flow_Nx3[idx]).all():
       given = back.apply(pts + np.asarray(start_flow_Nx3, np.float64)[idx])
       starts["network"] = rigid.kabsch(pts, given)
-    still_cost = _cost3d(tree, pts)
+    still_cost = _cost3d(tree, pts, visibility, ego_motion)
     best_name, best, best_cost = "still", still, still_cost
     for name, start in starts.items():
       for m in (start, _bev_icp(target, sample, start)):
-        c = _cost3d(tree, m.apply(pts))
+        c = _cost3d(tree, m.apply(pts), visibility, ego_motion)
         if c < best_cost:
           best_name, best, best_cost = name, m, c
     if still_cost - best_cost < max(MARGIN, RELATIVE_MARGIN * still_cost):

@@ -102,7 +102,7 @@ class _Street:
 
   def __init__(self, rng, sensor_height: float):
     self.g = -sensor_height
-    self.road = rng.uniform(4.5, 9.0)  # half width
+    self.road = rng.uniform(9.0, 12.0)  # half width: parking, a cycle lane, two lanes, the ego's
     self.crown = rng.uniform(0.0, 0.15)  # road centre above its edges
     self.kerb = rng.uniform(0.08, 0.18)
     hill = rng.random()
@@ -211,13 +211,13 @@ def build_scene(rng, opt: Options = Options()):
           syn.rotation((0, 1, 0), rng.uniform(-0.1, 0.1)) if walking else None,
           (rng.uniform(-0.05, 0.05), 0, rng.uniform(-0.18, 0.18)) if walking else None)
     if rng.random() < 0.5:  # a cyclist near the kerb, riding with the traffic of its side
-      x, z = side * (road - 2.6), rng.uniform(-30, 30)
+      x, z = side * (road - 3.2), rng.uniform(-30, 30)
       heading = 0.0 if side < 0 else math.pi
       v = rng.uniform(0.3, 0.8)
       add(_cyclist(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z), BICYCLIST,
           syn._I, (0, 0, v * math.cos(heading)))
   if opt.movers:
-    for lane in (-road / 4, road / 4):  # traffic: +z on the left lane (x < 0), -z on the right
+    for lane in (0.8 - road / 2, road / 2 - 0.8):  # traffic: +z on the left lane (x < 0), -z on the right
       heading = 0.0 if lane < 0 else math.pi
       z = rng.uniform(-60, -40)
       while z < 60:
@@ -225,7 +225,7 @@ def build_scene(rng, opt: Options = Options()):
           v = 0.0 if rng.random() < 0.25 else rng.uniform(0.3, 3.0)
           turn = np.deg2rad(rng.uniform(-2, 2)) * (v > 0)
           d = np.array([math.sin(heading + turn / 2), 0, math.cos(heading + turn / 2)])
-          x = lane + rng.uniform(-0.3, 0.3)
+          x = lane + rng.uniform(-0.2, 0.2)
           add(syn._car_parts(rng), syn.rotation((0, 1, 0), heading + rng.uniform(-0.04, 0.04)),
               (x, street.height(x, z), z), REGULAR_VEHICLE,
               syn.rotation((0, 1, 0), turn) if v else None, v * d if v else None)
