@@ -273,8 +273,7 @@ def check_ground(surface: Surface, ground_N, name: str, up: str):
   """Refuses a ground that cannot be one (issue 29): far from the sensor's height, above the
   sensor, or holding most of the sweep (a wall taken as ground under a wrong --up)."""
   height, fraction = surface.sensor_height, float(np.mean(ground_N))
-  override = ("if this is right, pass ground_limits=False (Python: ground.raw_sweep_flow, "
-              "Predictor.lidar)")
+  override = "if this is right, pass ground_limits=False to jaxflow.sweep.raw_sweep_flow"
   if not 0.0 < height <= MAX_SENSOR_HEIGHT:
     raise DataError(name, f"the ground found along --up {up} lies {height:.1f} m below the "
                     f"sensor (expected 0-{MAX_SENSOR_HEIGHT:g} m): is --up right? ({override})")

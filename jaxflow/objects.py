@@ -22,7 +22,7 @@ from jaxflow import ego, rigid
 
 CELL = 0.3  # metres: objects are connected cells seen from above (gaps of a cell bridged)
 OBJECT_TOP = 2.6  # metres above the ground: higher points (crowns, facades' tops) join no object
-MIN_POINTS = 8
+MIN_POINTS = 16
 MAX_SIZE = 14.0  # metres: a larger group is structure (a facade), never moved
 UNEXPLAINED = 0.15  # metres: a point this far from ego-compensated pc2 (seen from above)
 MIN_UNEXPLAINED = 0.15  # an object with fewer unexplained points than this share stands still
@@ -30,6 +30,8 @@ SEARCH, SEARCH_STEP = 3.5, 0.25  # metres: the translation search of an object (
 TRUNCATE = 0.3  # metres: a point's cost is its bird's-eye distance to pc2, at most this
 MARGIN = 0.02  # metres: a motion replaces standing still when its mean cost is this lower
 RELATIVE_MARGIN = 0.3  # ... and lower by this share of standing still's cost
+SIGNIFICANCE = 3.0  # ... and by this many standard errors of the per-point difference
+MAX_YAW_DEG = 10.0  # a frame
 LOW_GROUND = 0.05  # metres: "ground" points this high inside a moving object's cells move with it
 ROUNDS = 15
 AZIMUTH_BINS, ELEVATION_BINS = 1200, 360  # the visibility image: 0.3 x 0.5 degrees
@@ -62,10 +64,6 @@ def _per_point(target: ego.Target, moved_Kx3) -> np.ndarray:
   np.maximum.at(out, idx, np.abs(r))
   out[out < 0] = np.inf
   return out
-
-
-def _cost(target, points_Kx3) -> float:
-  return float(np.minimum(_per_point(target, points_Kx3), TRUNCATE).mean())
 
 
 def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion) -> rigid.Motion:
@@ -116,18 +114,31 @@ class Visibility:
     return self.bins[flat] < r - HIDDEN
 
 
-def _cost3d(tree, points_Kx3, visibility=None, to2=None) -> float:
-  """Mean truncated 3-D distance of the points to ego-compensated pc2 over the points pc2 could
-  see (the decision's cost: a box slid along its own side still matches seen from above, not in
-  3-D); TRUNCATE when pc2 sees too few of them."""
+def _costs(tree, points_Kx3, visibility, to2) -> np.ndarray:
+  """Truncated 3-D distance of each point to ego-compensated pc2, NaN where pc2 could not see it
+  (a box slid along its own side still matches seen from above, not in 3-D)."""
   d, _ = tree.query(points_Kx3, distance_upper_bound=TRUNCATE)
   d = np.minimum(d, TRUNCATE)
-  if visibility is not None:
-    seen = ~visibility.hidden(to2.apply(points_Kx3))
-    if seen.mean() < MIN_SEEN:
-      return TRUNCATE
-    d = d[seen]
-  return float(d.mean())
+  d[visibility.hidden(to2.apply(points_Kx3))] = np.nan
+  return d
+
+
+def _mean(costs) -> float:
+  """A motion's cost: the mean over the visible points (TRUNCATE when too few are)."""
+  seen = np.isfinite(costs)
+  return float(costs[seen].mean()) if seen.mean() >= MIN_SEEN else TRUNCATE
+
+
+def _better(still, moved) -> bool:
+  """Whether a motion's costs beat standing still's clearly: by MARGIN, by RELATIVE_MARGIN of
+  still's cost, and by SIGNIFICANCE standard errors of the paired difference."""
+  both = np.isfinite(still) & np.isfinite(moved)
+  if both.sum() < MIN_POINTS // 2 or _mean(moved) >= TRUNCATE:
+    return False
+  diff = still[both] - moved[both]
+  gain = diff.mean()
+  error = diff.std() / np.sqrt(len(diff))
+  return gain >= max(MARGIN, RELATIVE_MARGIN * still[both].mean()) and gain >= SIGNIFICANCE * error
 
 
 def _search(tree, points_Kx3) -> rigid.Motion:
@@ -198,20 +209,27 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     if np.ptp(pts[:, :2], axis=0).max() > MAX_SIZE:
       continue
     candidates += 1
-    sample = pts[rng.choice(len(pts), min(len(pts), 150), replace=False)]
+    # Motions are searched on half the points and judged on the other half: the best of many
+    # motions fits its own points better than standing still by chance alone.
+    shuffled = pts[rng.permutation(len(pts))]
+    sample, judge = shuffled[0::2][:150], shuffled[1::2]
     still = rigid.Motion(np.eye(3), np.zeros(3))
     starts = {"search": _search(tree, sample)}
     if start_flow_Nx3 is not None and np.isfinite(start_flow_Nx3[idx]).all():
       given = back.apply(pts + np.asarray(start_flow_Nx3, np.float64)[idx])
       starts["network"] = rigid.kabsch(pts, given)
-    still_cost = _cost3d(tree, pts, visibility, ego_motion)
-    best_name, best, best_cost = "still", still, still_cost
+    still_costs = _costs(tree, judge, visibility, ego_motion)
+    best_name, best, best_costs = "still", still, still_costs
     for name, start in starts.items():
       for m in (start, _bev_icp(target, sample, start)):
-        c = _cost3d(tree, m.apply(pts), visibility, ego_motion)
-        if c < best_cost:
-          best_name, best, best_cost = name, m, c
-    if still_cost - best_cost < max(MARGIN, RELATIVE_MARGIN * still_cost):
+        yaw = abs(np.degrees(np.arctan2(m.rotation[1, 0], m.rotation[0, 0])))
+        shift = np.linalg.norm(m.apply(judge.mean(0)[None])[0] - judge.mean(0))
+        if yaw > MAX_YAW_DEG or shift > SEARCH + 0.5:  # no car turns or jumps like that
+          continue
+        c = _costs(tree, m.apply(judge), visibility, ego_motion)
+        if _mean(c) < _mean(best_costs):
+          best_name, best, best_costs = name, m, c
+    if best_name == "still" or not _better(still_costs, best_costs):
       continue
     if surface is not None:  # on the ground: the height follows it
       centre = pts.mean(0)

@@ -69,7 +69,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import evaluation, export, geometry, ground, methods, test_time
+from jaxflow import evaluation, export, geometry, ground, methods, sweep, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -167,8 +167,8 @@ class Predictor:
     the range cut (jaxflow.ground) before the model; removed points get the ego-motion flow."""
     kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
     clouds = [_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
-    return ground.raw_sweep_flow(lambda a, b: self(a, b, names=kept_names, **kwargs), *clouds,
-                                 up=up, max_range=max_range, names=names)
+    return sweep.raw_sweep_flow(lambda a, b: self(a, b, names=kept_names, **kwargs), *clouds,
+                                up=up, max_range=max_range, names=names)
 
 
 _optimise_flow = jax.jit(methods.optimise_flow, static_argnums=3)
