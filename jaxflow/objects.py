@@ -23,12 +23,15 @@ from jaxflow import ego, rigid
 CELL = 0.3  # metres: objects are connected cells seen from above (gaps of a cell bridged)
 OBJECT_TOP = 2.6  # metres above the ground: higher points (crowns, facades' tops) join no object
 MIN_POINTS = 16
+MAX_HIGH = 0.25  # an object with more of its points above OBJECT_TOP is structure, not a vehicle
 MAX_SIZE = 14.0  # metres: a larger group is structure (a facade), never moved
 UNEXPLAINED = 0.15  # metres: a point this far from ego-compensated pc2 (seen from above)
 MIN_UNEXPLAINED = 0.15  # an object with fewer unexplained points than this share stands still
 SEARCH, SEARCH_STEP = 3.5, 0.25  # metres: the translation search of an object (3 m a frame)
-TRUNCATE = 0.3  # metres: a point's cost is its bird's-eye distance to pc2, at most this
-MARGIN = 0.02  # metres: a motion replaces standing still when its mean cost is this lower
+TRUNCATE = 0.3  # metres: a point's cost is its 3-D distance to pc2, at most this
+SPACINGS, MAX_TRUNCATE = 3.0, 1.5  # ... or this many of the object's point spacings (m, at most)
+MARGIN = 0.05  # a motion replaces standing still when its mean cost (of the truncation) is lower
+# by this
 RELATIVE_MARGIN = 0.3  # ... and lower by this share of standing still's cost
 SIGNIFICANCE = 3.0  # ... and by this many standard errors of the per-point difference
 MAX_YAW_DEG = 10.0  # a frame
@@ -114,11 +117,12 @@ class Visibility:
     return self.bins[flat] < r - HIDDEN
 
 
-def _costs(tree, points_Kx3, visibility, to2) -> np.ndarray:
+def _costs(tree, points_Kx3, visibility, to2, truncate) -> np.ndarray:
   """Truncated 3-D distance of each point to ego-compensated pc2, NaN where pc2 could not see it
-  (a box slid along its own side still matches seen from above, not in 3-D)."""
-  d, _ = tree.query(points_Kx3, distance_upper_bound=TRUNCATE)
-  d = np.minimum(d, TRUNCATE)
+  (a box slid along its own side still matches seen from above, not in 3-D), in units of
+  `truncate` (far objects are sampled sparsely: their distances are larger whatever the motion)."""
+  d, _ = tree.query(points_Kx3, distance_upper_bound=truncate)
+  d = np.minimum(d, truncate) / truncate
   d[visibility.hidden(to2.apply(points_Kx3))] = np.nan
   return d
 
@@ -126,14 +130,14 @@ def _costs(tree, points_Kx3, visibility, to2) -> np.ndarray:
 def _mean(costs) -> float:
   """A motion's cost: the mean over the visible points (TRUNCATE when too few are)."""
   seen = np.isfinite(costs)
-  return float(costs[seen].mean()) if seen.mean() >= MIN_SEEN else TRUNCATE
+  return float(costs[seen].mean()) if seen.mean() >= MIN_SEEN else 1.0
 
 
 def _better(still, moved) -> bool:
   """Whether a motion's costs beat standing still's clearly: by MARGIN, by RELATIVE_MARGIN of
   still's cost, and by SIGNIFICANCE standard errors of the paired difference."""
   both = np.isfinite(still) & np.isfinite(moved)
-  if both.sum() < MIN_POINTS // 2 or _mean(moved) >= TRUNCATE:
+  if both.sum() < MIN_POINTS // 2 or _mean(moved) >= 1.0:
     return False
   diff = still[both] - moved[both]
   gain = diff.mean()
@@ -206,8 +210,8 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     if len(idx) < MIN_POINTS or unexplained[idx].mean() < MIN_UNEXPLAINED:
       continue
     pts = pc1[idx]
-    if np.ptp(pts[:, :2], axis=0).max() > MAX_SIZE:
-      continue
+    if np.ptp(pts[:, :2], axis=0).max() > MAX_SIZE or (height[idx] > OBJECT_TOP).mean() > MAX_HIGH:
+      continue  # structure: a facade, a tree, or one column of a far wall's returns
     candidates += 1
     # Motions are searched on half the points and judged on the other half: the best of many
     # motions fits its own points better than standing still by chance alone.
@@ -218,7 +222,9 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     if start_flow_Nx3 is not None and np.isfinite(start_flow_Nx3[idx]).all():
       given = back.apply(pts + np.asarray(start_flow_Nx3, np.float64)[idx])
       starts["network"] = rigid.kabsch(pts, given)
-    still_costs = _costs(tree, judge, visibility, ego_motion)
+    spacing = np.median(cKDTree(pts).query(judge, 2)[0][:, 1])
+    truncate = float(np.clip(SPACINGS * spacing, TRUNCATE, MAX_TRUNCATE))
+    still_costs = _costs(tree, judge, visibility, ego_motion, truncate)
     best_name, best, best_costs = "still", still, still_costs
     for name, start in starts.items():
       for m in (start, _bev_icp(target, sample, start)):
@@ -226,7 +232,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
         shift = np.linalg.norm(m.apply(judge.mean(0)[None])[0] - judge.mean(0))
         if yaw > MAX_YAW_DEG or shift > SEARCH + 0.5:  # no car turns or jumps like that
           continue
-        c = _costs(tree, m.apply(judge), visibility, ego_motion)
+        c = _costs(tree, m.apply(judge), visibility, ego_motion, truncate)
         if _mean(c) < _mean(best_costs):
           best_name, best, best_costs = name, m, c
     if best_name == "still" or not _better(still_costs, best_costs):
