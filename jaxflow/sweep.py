@@ -23,6 +23,7 @@ import numpy as np
 from jaxflow import ego, ground, objects, rigid
 from jaxflow.errors import DataError
 
+MIN_PLANE_SHARE = 0.2  # of the points within 20 m on the ground plane, or there is no ground
 _TO_Z_UP = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}  # cyclic: proper rotations
 
 
@@ -61,6 +62,11 @@ def _surface(points_Nx3, name, notes):
     plane = ground.fit_ground(points_Nx3, "z", 20.0, name=name)
   except DataError as e:
     notes.append(f"{e}; no point of {name} is taken as ground")
+    return None, np.zeros(len(points_Nx3), bool)
+  near = int(ground.within_range(points_Nx3, "z", 20.0).sum())
+  if plane.inliers < MIN_PLANE_SHARE * near:  # a road holds ~60% of the points near the sensor
+    notes.append(f"{name}: no ground found (the best plane under the sensor holds "
+                 f"{plane.inliers} of the {near} points within 20 m); no point is taken as ground")
     return None, np.zeros(len(points_Nx3), bool)
   surface = ground.fit_surface(points_Nx3, "z", plane, name)
   return surface, surface.ground(points_Nx3)

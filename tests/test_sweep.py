@@ -44,9 +44,10 @@ def test_a_parked_sensor_leaves_the_background_still():
                          ids=["no ground", "3 m a frame", "nothing moves"])
 def test_hard_sweeps_give_finite_flows_near_the_truth(options):
   s = ss.sweep_pair("val", 12, options)
-  flow, _ = run(s)
+  flow, info = run(s)
   background = (s.category == 0) & s.eval_mask
   assert np.median(np.linalg.norm(flow - s.flow, axis=1)[background]) < 0.05
+  assert any("no ground found" in n for n in info.notes) == (not options.ground)
 
 
 def test_broken_pairs_give_finite_flows_and_a_note():
