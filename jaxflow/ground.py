@@ -304,9 +304,10 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float, seed: 
   share = counts[best] / len(sample)
   if share > 1 / 3 and share > 1.2 * ground_fraction and abs(normals[best, k]) < np.cos(np.radians(45)):
     along = "xyz"[int(np.argmax(np.abs(normals[best])))]
-    raise DataError(name, f"the sweep's largest plane ({100 * counts[best] / len(sample):.0f}% of "
-                    f"the points) is perpendicular to --up {up}, and is most likely the ground: "
-                    f"use --up {along} (or pass ground_limits=False if {up} is right)")
+    raise DataError(name, f"no ground plane across the {up} axis: the sweep's largest plane "
+                    f"({100 * share:.0f}% of the points) is perpendicular to it, and is most "
+                    f"likely the ground: use --up {along} (or pass ground_limits=False to "
+                    f"jaxflow.sweep.raw_sweep_flow if {up} is right)")
 
 
 def lidar_keep(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_RANGE,
