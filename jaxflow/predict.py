@@ -69,12 +69,13 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import evaluation, export, geometry, ground, methods, sweep, test_time
+from jaxflow import evaluation, export, geometry, ground, methods, test_time
 from jaxflow.data import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
 from jaxflow.export import write_ply  # noqa: F401  (predict.write_ply, as the docs use it)
 from jaxflow.model import build_model
+from jaxflow.sweep import raw_sweep_flow
 
 DEFAULT_MAX_POINTS = 8192  # the paper's evaluation size
 DEFAULT_ITERS = 32  # the paper's test-time iterations
@@ -167,8 +168,8 @@ class Predictor:
     the range cut (jaxflow.ground) before the model; removed points get the ego-motion flow."""
     kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
     clouds = [_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
-    return sweep.raw_sweep_flow(lambda a, b: self(a, b, names=kept_names, **kwargs), *clouds,
-                                up=up, max_range=max_range, names=names)
+    return raw_sweep_flow(lambda a, b: self(a, b, names=kept_names, **kwargs), *clouds,
+                          up=up, max_range=max_range, names=names)
 
 
 _optimise_flow = jax.jit(methods.optimise_flow, static_argnums=3)

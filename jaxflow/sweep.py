@@ -75,8 +75,9 @@ def _surface(points_Nx3, name, notes):
 def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
                    max_range: float | None = ground.DEFAULT_MAX_RANGE, names=("pc1", "pc2"),
                    use_network: bool = False, ground_limits: bool = True,
-                   seed: int = 0) -> tuple[np.ndarray, SweepInfo]:
-  """Flow N x 3 (float32) of EVERY point of pc1 and a SweepInfo (module docstring)."""
+                   moving_objects: bool = True, seed: int = 0) -> tuple[np.ndarray, SweepInfo]:
+  """Flow N x 3 (float32) of EVERY point of pc1 and a SweepInfo (module docstring);
+  moving_objects=False: the ego-motion flow for every point (what the objects step adds)."""
   ground.axis(up)  # a ConfigError for a wrong name
   order = _TO_Z_UP[up]
   back = np.argsort(order)
@@ -109,7 +110,10 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
     surface = ground.fit_surface(both, "z", None, names[0])
     g1 = surface.ground(pc1)
     g2 = surface.ground(inverse.apply(pc2))
-  flow, found = objects.object_flow(pc1, pc2, g1, g2, fit.motion, surface, start_flow, seed)
+  if moving_objects:
+    flow, found = objects.object_flow(pc1, pc2, g1, g2, fit.motion, surface, start_flow, seed)
+  else:
+    flow, found = fit.motion.flow(pc1), objects.Found(0, 0, [])
   if not np.isfinite(flow).all():  # never reached by construction; never returned either
     raise FloatingPointError("raw_sweep_flow: a non-finite flow")
   p = np.eye(3)[order]  # z-up coordinates = p @ input coordinates
