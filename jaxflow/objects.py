@@ -32,7 +32,7 @@ TRUNCATE = 0.3  # metres: a point's cost is its 3-D distance to pc2, at most thi
 SPACINGS, MAX_TRUNCATE = 3.0, 1.5  # ... or this many of the object's point spacings (m, at most)
 MARGIN = 0.05  # a motion replaces standing still when its mean cost (of the truncation) is lower
 # by this
-RELATIVE_MARGIN = 0.3  # ... and lower by this share of standing still's cost
+RELATIVE_MARGIN = 0.1  # ... and lower by this share of standing still's cost
 SIGNIFICANCE = 3.0  # ... and by this many standard errors of the per-point difference
 MAX_YAW_DEG = 10.0  # a frame
 LOW_GROUND = 0.05  # metres: "ground" points this high inside a moving object's cells move with it
