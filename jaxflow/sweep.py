@@ -23,6 +23,7 @@ import numpy as np
 from jaxflow import ego, ground, objects, rigid
 from jaxflow.errors import DataError
 
+MIN_AZIMUTH = 0.5  # of the azimuth a sweep covers at least (a camera's view covers less)
 MIN_PLANE_SHARE = 0.2  # of the points within 20 m on the ground plane, or there is no ground
 _TO_Z_UP = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}  # cyclic: proper rotations
 
@@ -93,6 +94,14 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
         ground.check_ground(surf, g, name, up)
   near1, near2 = ground.within_range(pc1, "z", max_range), ground.within_range(pc2, "z", max_range)
   keep1, keep2 = ~g1 & near1, ~g2 & near2
+  view = azimuth_coverage(pc1)
+  if view < MIN_AZIMUTH and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
+    return _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, order,
+                        surf1, max_range, notes + [
+                          f"{names[0]} covers {360 * view:.0f} of 360 degrees of azimuth: a "
+                          "camera's view, not a sweep; the flow of its non-ground points within "
+                          "max_range is the method's, the rest gets the rigid motion of their "
+                          "static part"])
   starts, start_flow = {}, None
   if use_network and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
     kept_flow = np.asarray(flow_fn(np.asarray(pc1_Nx3, np.float32)[keep1],
@@ -125,3 +134,31 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
     kept=(int((~g1 & near1).sum()), int((~g2 & near2).sum())), motion=motion, ego=fit,
     objects=found, max_range=max_range, used_network=start_flow is not None, notes=tuple(notes))
   return np.ascontiguousarray(flow[:, back], np.float32), info
+
+
+def azimuth_coverage(points_Nx3) -> float:
+  """Share of 36 azimuth sectors (z up) holding at least 0.1% of the points."""
+  azimuth = np.arctan2(points_Nx3[:, 1], points_Nx3[:, 0])
+  counts = np.histogram(azimuth, 36, (-np.pi, np.pi))[0]
+  return float((counts >= max(1, 1e-3 * len(points_Nx3))).mean())
+
+
+def _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, order, surf1,
+                 max_range, notes):
+  """A camera-frame pair (e.g. KITTI's stereo frames): flow_fn on the kept points, the removed
+  ones the rigid motion of the static part of that flow (jaxflow.rigid)."""
+  pc1 = np.asarray(pc1_Nx3, np.float32)
+  kept_flow = np.asarray(flow_fn(pc1[keep1], np.asarray(pc2_Mx3, np.float32)[keep2]), np.float32)
+  motion = rigid.fit_static_motion(pc1[keep1], kept_flow)
+  flow = motion.flow(pc1)
+  flow[keep1] = kept_flow
+  p = np.eye(3)[order]
+  z_up = rigid.Motion(p @ motion.rotation @ p.T, p @ motion.translation)
+  fit = ego.EgoMotion(z_up, float(motion.inliers.mean()), float("nan"), "flow_fn", {})
+  info = SweepInfo(
+    sensor_height=None if surf1 is None else surf1.sensor_height,
+    ground=(int(g1.sum()), int(g2.sum())),
+    far=(int((~g1 & ~near1).sum()), int((~g2 & ~near2).sum())),
+    kept=(int(keep1.sum()), int(keep2.sum())), motion=motion, ego=fit,
+    objects=objects.Found(0, 0, []), max_range=max_range, used_network=True, notes=tuple(notes))
+  return flow, info

@@ -89,3 +89,22 @@ def test_predict_lidar_gives_the_true_ego_motion():
   err = np.linalg.norm(flow - s.ego_flow, axis=1)[static]
   assert np.median(err) < 0.005 and np.percentile(err, 90) < 0.02
   np.testing.assert_allclose(info.motion.translation, s.ego_translation, atol=0.01)
+
+
+def test_a_camera_view_uses_the_given_flow_and_its_rigid_part():
+  s = ss.sweep_pair("val", 6, SMALL)
+  front1 = np.abs(np.arctan2(s.pc1[:, 1], s.pc1[:, 0])) < np.radians(45)
+  front2 = np.abs(np.arctan2(s.pc2[:, 1], s.pc2[:, 0])) < np.radians(45)
+  pc1, truth, ego_flow = s.pc1[front1], s.flow[front1], s.ego_flow[front1]
+  seen = {}
+
+  def exact(a, b):  # a perfect estimator: the true flow of the points it is given
+    seen["rows"] = len(a)
+    rows = np.flatnonzero(np.isin(pc1.view("f4,f4,f4"), a.view("f4,f4,f4")).ravel())
+    return truth[rows]
+
+  flow, info = sweep.raw_sweep_flow(exact, pc1, s.pc2[front2])
+  assert "camera's view" in info.note() and seen["rows"] == info.kept[0]
+  static = s.category[front1] == 0  # the given flow where it ran, its rigid part elsewhere
+  assert np.median(np.linalg.norm(flow - ego_flow, axis=1)[static]) < 0.01
+  np.testing.assert_allclose(info.motion.translation, s.ego_translation, atol=0.02)
