@@ -302,7 +302,8 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float, seed: 
             < INLIER).sum(1)
   best = int(np.argmax(counts))
   share = counts[best] / len(sample)
-  if share > 1 / 3 and share > 1.2 * ground_fraction and abs(normals[best, k]) < np.cos(np.radians(45)):
+  across = abs(normals[best, k]) < np.cos(np.radians(45))
+  if share > 1 / 3 and share > 1.2 * ground_fraction and across:
     along = "xyz"[int(np.argmax(np.abs(normals[best])))]
     raise DataError(name, f"no ground plane across the {up} axis: the sweep's largest plane "
                     f"({100 * share:.0f}% of the points) is perpendicular to it, and is most "

@@ -240,7 +240,8 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     if surface is not None:  # on the ground: the height follows it
       centre = pts.mean(0)
       new_centre = best.apply(centre[None])[0]
-      rise = surface.height(centre[None])[0] - surface.height(np.r_[new_centre[:2], centre[2]][None])[0]
+      below = np.r_[new_centre[:2], centre[2]][None]  # the ground under the new place
+      rise = surface.height(centre[None])[0] - surface.height(below)[0]
       best = rigid.Motion(best.rotation, best.translation + [0, 0, rise])
     flow[idx] = _world(best, ego_motion).flow(pts)
     yaw = float(np.degrees(np.arctan2(best.rotation[1, 0], best.rotation[0, 0])))

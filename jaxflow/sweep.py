@@ -44,6 +44,12 @@ class SweepInfo:
 
   def note(self) -> str:
     moved = sum(m[0] for m in self.objects.moved)
+    if self.ego.start == "flow_fn":  # a camera's view: the method's flow and its rigid part
+      return (f"--lidar: ground plane per 2 m cell; removed {self.ground[0]} ground and "
+              f"{self.far[0]} far points of PC1; flow estimated on {self.kept[0]} points; the "
+              f"removed PC1 points get the ego-motion flow of a rigid fit to its static part "
+              f"({self.motion.angle_deg:.2f} deg, {np.linalg.norm(self.motion.translation):.2f} m)"
+              + "".join(f"\nnote: {n}" for n in self.notes))
     ground_text = ("no ground found" if self.sensor_height is None else
                    f"ground plane per 2 m cell (sensor {self.sensor_height:.2f} m above it)")
     return (f"--lidar: {ground_text}; removed {self.ground[0]} ground points of PC1 "
@@ -102,6 +108,9 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
                           "camera's view, not a sweep; the flow of its non-ground points within "
                           "max_range is the method's, the rest gets the rigid motion of their "
                           "static part"])
+  if view < MIN_AZIMUTH:
+    notes.append(f"{names[0]} covers {360 * view:.0f} of 360 degrees of azimuth: a camera's view, "
+                 "not a sweep; the sweep's ego-motion fit may be wrong there")
   starts, start_flow = {}, None
   if use_network and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
     kept_flow = np.asarray(flow_fn(np.asarray(pc1_Nx3, np.float32)[keep1],

@@ -30,7 +30,7 @@ def test_recovered_to_a_centimetre_from_each_start(slow_sweep):
   true = rigid.Motion(s.ego_rotation, s.ego_translation)
   c, sn = np.cos(np.radians(1.0)), np.sin(np.radians(1.0))
   off = rigid.Motion(np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ true.rotation,
-                     true.translation + [0.3, -0.2, 0.05])  # a network-like start, 1 deg / 0.4 m off
+                     true.translation + [0.3, -0.2, 0.05])  # network-like: 1 deg, 0.4 m off
   result = fit(s, starts={"network": off})
   assert set(result.starts) == {"zero", "network", "search"}
   for name, (motion, _) in result.starts.items():

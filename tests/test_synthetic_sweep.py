@@ -55,9 +55,10 @@ def test_the_two_sweeps_are_sampled_independently(sweep):
 
 
 def test_splits_are_disjoint_and_pairs_deterministic():
-  a, b = ss.sweep_pair("val", 2, ss.Options(scale=0.05)), ss.sweep_pair("val", 2, ss.Options(scale=0.05))
+  tiny = ss.Options(scale=0.05)
+  a, b = ss.sweep_pair("val", 2, tiny), ss.sweep_pair("val", 2, tiny)
   np.testing.assert_array_equal(a.pc1, b.pc1)
-  c = ss.sweep_pair("test", 2, ss.Options(scale=0.05))
+  c = ss.sweep_pair("test", 2, tiny)
   assert a.pc1.shape != c.pc1.shape or not np.allclose(a.pc1, c.pc1)
   assert set(range(ss.SEED_BASE["val"], ss.SEED_BASE["val"] + 10**6)).isdisjoint(
     {ss.SEED_BASE["test"]})

@@ -217,7 +217,7 @@ def build_scene(rng, opt: Options = Options()):
       add(_cyclist(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z), BICYCLIST,
           syn._I, (0, 0, v * math.cos(heading)))
   if opt.movers:
-    for lane in (0.8 - road / 2, road / 2 - 0.8):  # traffic: +z on the left lane (x < 0), -z on the right
+    for lane in (0.8 - road / 2, road / 2 - 0.8):  # traffic: +z on the left lane, -z on the right
       heading = 0.0 if lane < 0 else math.pi
       z = rng.uniform(-60, -40)
       while z < 60:
