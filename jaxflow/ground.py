@@ -1,21 +1,20 @@
-"""Raw LiDAR sweeps made to look like the training data: ground removal and a range cut.
+"""The ground of raw LiDAR sweeps: one RANSAC plane, or local planes per cell; a range cut.
 
     plane = fit_ground(points_Nx3, up="z")            # RANSAC plane under the lowest points
-    keep_N = ~plane.ground(points_Nx3) & within_range(points_Nx3, "z", 35.0)
-    flow_Nx3, info = raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up="z", max_range=35.0)
+    surface = fit_surface(points_Nx3, up="z")         # a plane per 2 m cell: slopes, crowned roads
+    ground_N = surface.ground(points_Nx3)             # less than 0.25 m above the ground under it
+    keep_N = ~ground_N & within_range(points_Nx3, "z", 35.0)
 
 The benchmark layouts remove ground by height (KITTI's camera frame: y < -1.4) and keep 35 m
-(DESIGN.md section 7); a raw sweep has neither. `raw_sweep_flow` runs a flow estimator on what
-remains and gives every removed point (ground, or beyond the range) the ego-motion flow of a rigid
-fit (`jaxflow.rigid`) to the static part of the estimated flow: ground and far points are static
-world, so the sensor's motion is their flow.
+(DESIGN.md section 7); a raw sweep has neither. `check_ground` and `check_up_axis` refuse a
+"ground" that cannot be one (a wall under a wrong up axis). jaxflow.sweep uses all of it for the
+flow of raw sweep pairs.
 """
 
 import dataclasses
 
 import numpy as np
 
-from jaxflow import rigid
 from jaxflow.errors import ConfigError, DataError
 
 UP_AXES = {"x": 0, "y": 1, "z": 2}
@@ -125,25 +124,192 @@ def fit_ground(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_
   return Plane(normal, offset, int((np.abs(cand @ normal + offset) < INLIER).sum()))
 
 
-@dataclasses.dataclass(frozen=True)
-class SweepInfo:
-  """What `raw_sweep_flow` did: the planes, the points kept and removed, the ego-motion fit."""
-  planes: tuple  # (Plane of pc1, Plane of pc2)
-  ground: tuple  # (pc1, pc2) ground points removed
-  far: tuple  # (pc1, pc2) non-ground points beyond max_range
-  kept: tuple  # (pc1, pc2) points the estimator saw
-  motion: rigid.Motion  # ego-motion: the rigid fit to the static part of the estimated flow
-  max_range: float | None
+# Local ground: a plane per cell, fitted to the lowest points of the cells around it (issue 26).
+SURFACE_CELL = 2.0  # metres: cells of the height map
+SURFACE_WINDOWS = (5, 11, 23)  # cells: the windows a cell's plane is fitted over, smallest first
+SURFACE_ABOVE = 0.2  # metres: a cell whose lowest point is this far above the surface is no ground
+SURFACE_NEAR = 0.08  # metres: the points that refine the surface's height
+SURFACE_ROUNDS = 24  # reweighting rounds (the accepted region grows a window a round: slopes)
+SURFACE_EXTENT = 110.0  # metres: the height map's half width (points beyond use the edge cells)
+MAX_SENSOR_HEIGHT = 5.0  # metres: a ground farther below the sensor is refused (wrong --up)
+MAX_GROUND_FRACTION = 0.85  # a "ground" holding more of a sweep is refused
 
-  def note(self) -> str:
-    p = self.planes[0]
-    return (f"--lidar: ground plane at height {-p.offset:.2f} m along the up axis (tilt "
-            f"{p.tilt_deg:.1f} deg); removed {self.ground[0]} ground and {self.far[0]} points "
-            f"beyond {self.max_range or 'no'} m of PC1 ({self.ground[1]} and {self.far[1]} of "
-            f"PC2); flow estimated on {self.kept[0]} points; the {self.ground[0] + self.far[0]} "
-            f"removed PC1 points get the ego-motion flow of a rigid fit to "
-            f"{int(self.motion.inliers.sum())} static points ({self.motion.angle_deg:.2f} deg, "
-            f"{np.linalg.norm(self.motion.translation):.2f} m)")
+
+@dataclasses.dataclass(frozen=True)
+class Surface:
+  """The ground as a plane per CELL x CELL column: height h = a u + b v + c along `up`, (u, v) the
+  two other axes in order. `supported`: the cells whose plane rests on ground points nearby."""
+  up: int
+  cell: float
+  origin: np.ndarray  # 2: (u, v) of the corner of cell (0, 0)
+  coef_HxWx3: np.ndarray
+  supported_HxW: np.ndarray
+
+  def _split(self, points_Nx3):
+    p = np.asarray(points_Nx3, np.float64)
+    other = [i for i in range(3) if i != self.up]
+    return p[:, other], p[:, self.up]
+
+  def _cells(self, uv_Nx2):
+    ij = np.floor((uv_Nx2 - self.origin) / self.cell).astype(np.int64)
+    return np.clip(ij, 0, np.array(self.coef_HxWx3.shape[:2]) - 1)
+
+  def height(self, points_Nx3) -> np.ndarray:
+    """Height of each point above the ground under it (N, metres)."""
+    uv, h = self._split(points_Nx3)
+    ij = self._cells(uv)
+    a, b, c = np.moveaxis(self.coef_HxWx3[ij[:, 0], ij[:, 1]], -1, 0)
+    return h - (a * uv[:, 0] + b * uv[:, 1] + c)
+
+  def ground(self, points_Nx3, margin: float = GROUND_MARGIN) -> np.ndarray:
+    return self.height(points_Nx3) < margin
+
+  @property
+  def sensor_height(self) -> float:
+    """Height of the sensor (the origin) above the ground under it."""
+    return float(self.height(np.zeros((1, 3)))[0])
+
+  @property
+  def support(self) -> float:
+    """Fraction of the height map's occupied cells resting on ground."""
+    return float(self.supported_HxW.mean())
+
+
+def _lowest_per_cell(uv_Nx2, h_N, origin, cell, shape):
+  """(flat cell index, u, v, h) of the second-lowest point of every occupied cell (the lowest of
+  a single-point cell): one stray point below the ground does not set a cell's height."""
+  ij = np.clip(np.floor((uv_Nx2 - origin) / cell).astype(np.int64), 0, np.array(shape) - 1)
+  flat = ij[:, 0] * shape[1] + ij[:, 1]
+  order = np.lexsort((h_N, flat))
+  flat_sorted = flat[order]
+  first = np.flatnonzero(np.r_[True, flat_sorted[1:] != flat_sorted[:-1]])
+  count = np.diff(np.r_[first, len(order)])
+  pick = order[first + (count > 1)]
+  return flat[pick], uv_Nx2[pick, 0], uv_Nx2[pick, 1], h_N[pick]
+
+
+def _window_planes(w_HxW, u_HxW, v_HxW, h_HxW, window: int):
+  """Weighted least-squares plane of each cell's window: (coef HxWx3, weight sum HxW, ok HxW)."""
+  from scipy import ndimage  # pylint: disable=import-outside-toplevel
+  terms = [w_HxW, w_HxW * u_HxW, w_HxW * v_HxW, w_HxW * u_HxW * u_HxW, w_HxW * u_HxW * v_HxW,
+           w_HxW * v_HxW * v_HxW, w_HxW * h_HxW, w_HxW * u_HxW * h_HxW, w_HxW * v_HxW * h_HxW]
+  s, su, sv, suu, suv, svv, sh, suh, svh = (
+    ndimage.uniform_filter(t, window, mode="constant") * window * window for t in terms)
+  a_HxWx3x3 = np.stack([np.stack([suu, suv, su], -1), np.stack([suv, svv, sv], -1),
+                        np.stack([su, sv, s], -1)], -2)
+  rhs = np.stack([suh, svh, sh], -1)
+  det = np.linalg.det(a_HxWx3x3)
+  ok = (s >= 4) & (np.abs(det) > 1e-6 * np.maximum(s, 1) ** 3)
+  a_HxWx3x3[~ok] = np.eye(3)
+  coef = np.linalg.solve(a_HxWx3x3, rhs[..., None])[..., 0]
+  tilt_ok = np.hypot(coef[..., 0], coef[..., 1]) < np.tan(np.radians(MAX_TILT_DEG))
+  return coef, s, ok & tilt_ok
+
+
+def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str = "points",
+                extent: float = SURFACE_EXTENT, cell: float = SURFACE_CELL) -> Surface:
+  """The local ground of a sweep (or of two sweeps put in one frame): per cell, a plane fitted to
+  the lowest points of the cells around it, the cells whose lowest point is more than
+  SURFACE_ABOVE above the current surface left out (objects), grown round by round from
+  `plane` (default: fit_ground's RANSAC plane near the sensor) so that slopes and crowned roads
+  are followed. A cell too far from any ground keeps the plane of the nearest window that has one.
+  """
+  k = axis(up)
+  points = np.asarray(points_Nx3, np.float64)
+  plane = plane or fit_ground(points, up, 20.0, name=name)
+  other = [i for i in range(3) if i != k]
+  uv, h = points[:, other], points[:, k]
+  n = int(np.ceil(2 * extent / cell))
+  origin = np.full(2, -extent)
+  flat, lu, lv, lh = _lowest_per_cell(uv, h, origin, cell, (n, n))
+  occupied = np.zeros(n * n, bool)
+  occupied[flat] = True
+  grids = []
+  for values in (lu, lv, lh):
+    g = np.zeros(n * n)
+    g[flat] = values
+    grids.append(g.reshape(n, n))
+  u_g, v_g, h_g = grids
+  occupied = occupied.reshape(n, n)
+  normal = plane.normal
+  ref = np.array([-normal[other[0]] / normal[k], -normal[other[1]] / normal[k],
+                  -plane.offset / normal[k]])
+  coef = np.broadcast_to(ref, (n, n, 3)).copy()
+  supported = np.zeros((n, n), bool)
+  for _ in range(SURFACE_ROUNDS):
+    residual = h_g - (coef[..., 0] * u_g + coef[..., 1] * v_g + coef[..., 2])
+    weight = (occupied & (residual < SURFACE_ABOVE)).astype(np.float64)
+    new, done = coef.copy(), np.zeros((n, n), bool)
+    for window in SURFACE_WINDOWS:
+      fitted, _, ok = _window_planes(weight, u_g, v_g, h_g, window)
+      take = ok & ~done
+      new[take] = fitted[take]
+      done |= take
+    grown = (done & ~supported).sum()
+    coef, supported = new, done
+    if not grown:
+      break
+  surface = Surface(k, cell, origin, coef, supported)
+  # The lowest points lie low by the noise: refit each window to the mean of every point near the
+  # surface (|height| < SURFACE_NEAR), weighted by their count.
+  for _ in range(2):
+    near = np.abs(surface.height(points)) < SURFACE_NEAR
+    ij = surface._cells(uv[near])
+    flat_near = ij[:, 0] * n + ij[:, 1]
+    count = np.bincount(flat_near, minlength=n * n).reshape(n, n).astype(np.float64)
+    means = [np.bincount(flat_near, x, minlength=n * n).reshape(n, n) / np.maximum(count, 1)
+             for x in (uv[near, 0], uv[near, 1], h[near])]
+    new, done = surface.coef_HxWx3.copy(), np.zeros((n, n), bool)
+    for window in (3, *SURFACE_WINDOWS):  # means are reliable: a 3-cell window where it holds
+      fitted, _, ok = _window_planes(np.sqrt(count), *means, window)
+      take = ok & ~done
+      new[take] = fitted[take]
+      done |= take
+    surface = Surface(k, cell, origin, new, supported)
+  return surface
+
+
+def check_ground(surface: Surface, ground_N, name: str, up: str):
+  """Refuses a ground that cannot be one (issue 29): far from the sensor's height, above the
+  sensor, or holding most of the sweep (a wall taken as ground under a wrong --up)."""
+  height, fraction = surface.sensor_height, float(np.mean(ground_N))
+  override = ("if this is right, give predict --noground_limits (ground_limits=False in "
+              "Python)")
+  if not 0.0 < height <= MAX_SENSOR_HEIGHT:
+    raise DataError(name, f"the ground found along --up {up} lies {height:.1f} m below the "
+                    f"sensor (expected 0-{MAX_SENSOR_HEIGHT:g} m): is --up right? ({override})")
+  if fraction > MAX_GROUND_FRACTION:
+    raise DataError(name, f"the ground found along --up {up} holds {100 * fraction:.0f}% of the "
+                    f"points (more than {100 * MAX_GROUND_FRACTION:.0f}%): is --up right? "
+                    f"({override})")
+
+
+def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float, seed: int = 0):
+  """Refuses an up axis perpendicular to the sweep's largest plane when that plane holds a third
+  of the points and more than what was taken as ground (`ground_fraction`): the ground is a
+  sweep's largest plane, a wall rarely is."""
+  k = axis(up)
+  p = np.asarray(points_Nx3, np.float64)
+  rng = np.random.default_rng(seed)
+  sample = p[rng.choice(len(p), min(len(p), 4000), replace=False)]
+  triples = sample[rng.integers(0, len(sample), (300, 3))]
+  normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+  norms = np.linalg.norm(normals, axis=1)
+  ok = norms > 1e-6
+  if not ok.any():
+    return
+  normals, triples = normals[ok] / norms[ok, None], triples[ok]
+  counts = (np.abs((sample[None] - triples[:, None, 0]) @ normals[..., None])[..., 0]
+            < INLIER).sum(1)
+  best = int(np.argmax(counts))
+  share = counts[best] / len(sample)
+  across = abs(normals[best, k]) < np.cos(np.radians(45))
+  if share > 1 / 3 and share > 1.2 * ground_fraction and across:
+    along = "xyz"[int(np.argmax(np.abs(normals[best])))]
+    raise DataError(name, f"no ground plane across the {up} axis: the sweep's largest plane "
+                    f"({100 * share:.0f}% of the points) is perpendicular to it, and is most "
+                    f"likely the ground: use --up {along} (or --noground_limits, "
+                    f"ground_limits=False in Python, if {up} is right)")
 
 
 def lidar_keep(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_RANGE,
@@ -152,24 +318,3 @@ def lidar_keep(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_
   plane = fit_ground(points_Nx3, up, max_range, seed, name)
   ground_N = plane.ground(points_Nx3)
   return ~ground_N & within_range(points_Nx3, up, max_range), ground_N, plane
-
-
-def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
-                   max_range: float | None = DEFAULT_MAX_RANGE,
-                   names=("pc1", "pc2")) -> tuple[np.ndarray, SweepInfo]:
-  """Flow N x 3 of EVERY point of pc1: `flow_fn(pc1_kept, pc2_kept)` on the non-ground points
-  within max_range of both clouds; the removed pc1 points get the ego-motion flow (see the module
-  docstring). Returns the flow and a SweepInfo."""
-  pc1, pc2 = np.asarray(pc1_Nx3, np.float32), np.asarray(pc2_Mx3, np.float32)
-  keep1, ground1, plane1 = lidar_keep(pc1, up, max_range, name=names[0])
-  keep2, ground2, plane2 = lidar_keep(pc2, up, max_range, name=names[1])
-  kept1 = pc1[keep1]
-  flow_kept = np.asarray(flow_fn(kept1, pc2[keep2]), np.float32)
-  motion = rigid.fit_static_motion(kept1, flow_kept)
-  flow = np.empty_like(pc1)
-  flow[keep1] = flow_kept
-  flow[~keep1] = motion.flow(pc1[~keep1])
-  info = SweepInfo(planes=(plane1, plane2), ground=(int(ground1.sum()), int(ground2.sum())),
-                   far=(int((~keep1 & ~ground1).sum()), int((~keep2 & ~ground2).sum())),
-                   kept=(int(keep1.sum()), int(keep2.sum())), motion=motion, max_range=max_range)
-  return flow, info

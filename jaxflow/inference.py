@@ -14,8 +14,10 @@ flow of its nearest sampled pc1 point (Euclidean; a sampled point keeps its own)
 `full=True` runs the model on the whole clouds instead, with the correlation and kNN built
 `corr_chunk` pc1 rows at a time (memory linear in the points; time grows as N x M).
 
-Raw sweeps (`lidar=True`): the ground and the points beyond `max_range` go first
-(ground.raw_sweep_flow); every pc1 point still gets a row, a removed one the ego-motion flow.
+Raw sweeps (`lidar=True`): jaxflow.sweep.raw_sweep_flow, the ground, the sensor's ego-motion and
+one rigid motion per moving object; every pc1 point gets a row. The method itself runs only on a
+camera's view (under half the azimuth: the non-ground points within `max_range`), or as one more
+start for the fits with `use_network=True`.
 """
 
 import dataclasses
@@ -27,7 +29,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import checkpointing, evaluation, frames, geometry, ground, methods, optimiser
+from jaxflow import checkpointing, evaluation, frames, geometry, ground, methods, optimiser, sweep
 from jaxflow.data.pointfiles import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
@@ -46,7 +48,7 @@ class Prediction:
   flow: np.ndarray  # N x 3 float32, a row per point of pc1 in its order
   notes: tuple = ()  # non-convergence of an optimisation, a lopsided pair
   used: tuple = ()  # (pc1, pc2) points the method was given (after the lidar cut)
-  sweep: object = None  # ground.SweepInfo with lidar=True
+  sweep: object = None  # sweep.SweepInfo with lidar=True
   up: str = frames.MODEL_UP  # the up axis of the clouds (jaxflow.frames): the flow is in their frame
 
 
@@ -110,7 +112,8 @@ class Predictor:
               max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
               corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
               lidar: bool = False, up: str | None = None,
-              max_range: float | None = ground.DEFAULT_MAX_RANGE) -> Prediction:
+              max_range: float | None = ground.DEFAULT_MAX_RANGE, ground_limits: bool = True,
+              use_network: bool = False) -> Prediction:
     """The Prediction of every point of pc1 (the module docstring: sampling, full, lidar). `up`:
     the clouds' up axis (default z with lidar, else y, the models' frame; jaxflow.frames): the
     clouds are rotated into the models' frame for the method and the flow back."""
@@ -131,9 +134,11 @@ class Predictor:
       return inner[-1].flow
 
     clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
-    flow, sweep = ground.raw_sweep_flow(frames.in_model_frame(estimate, up), *clouds, up=up,
-                                        max_range=max_range, names=names)
-    return dataclasses.replace(inner[-1], flow=np.asarray(flow, np.float32), sweep=sweep, up=up)
+    flow, info = sweep.raw_sweep_flow(frames.in_model_frame(estimate, up), *clouds, up=up,
+                                      max_range=max_range, names=names,
+                                      ground_limits=ground_limits, use_network=use_network)
+    notes = inner[-1].notes if inner else tuple(n for n in [lopsided(*info.kept)] if n)
+    return Prediction(np.asarray(flow, np.float32), notes, info.kept, info, up)
 
   def _predict(self, pc1_Nx3, pc2_Mx3, num_iters, max_points, full, corr_chunk, seed):
     if num_iters < 1:
@@ -248,7 +253,8 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
                  num_iters: int = DEFAULT_ITERS, max_points: int | None = DEFAULT_MAX_POINTS,
                  full: bool = False, corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
                  predictor: Predictor | None = None, lidar: bool = False, up: str | None = None,
-                 max_range: float | None = ground.DEFAULT_MAX_RANGE) -> np.ndarray:
+                 max_range: float | None = ground.DEFAULT_MAX_RANGE,
+                 ground_limits: bool = True) -> np.ndarray:
   """Flow N x 3 (float32) of every point of pc1 towards pc2 by `method` (default DEFAULT_METHOD,
   `optimise`, as `python -m jaxflow.predict`); the checkpoint (None: the shipped one) is loaded once
   and kept. `predictor` (load_predictor / fresh_predictor) replaces checkpoint and method. The
@@ -260,7 +266,7 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
     raise ConfigError(f"method={method!r} but the predictor given runs {predictor.method!r}")
   prediction = predictor.predict(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points,
                                  full=full, corr_chunk=corr_chunk, seed=seed, lidar=lidar, up=up,
-                                 max_range=max_range)
+                                 max_range=max_range, ground_limits=ground_limits)
   for note in prediction.notes:
     warnings.warn(note, stacklevel=2)
   return prediction.flow

@@ -72,8 +72,13 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   cli.define_run_flags(default_method)
   flags.DEFINE_string("render", None, "Also draw the flow of this pair: FILE.png a top view in --up "
                       "(speed relative to the ego-motion), FILE.html a 3D viewer (extra 'viewer').")
-  flags.DEFINE_bool("lidar", False, "Raw sweeps: remove the ground (plane fit along --up) and the "
-                    "points beyond --max_range before the method; those get the ego-motion flow.")
+  flags.DEFINE_bool("lidar", False, "Raw sweeps (jaxflow.sweep): the ground (local planes along "
+                    "--up), the sensor's ego-motion (robust ICP) and one rigid motion per moving "
+                    "object; the method runs only on a camera's view (the points within "
+                    "--max_range off the ground).")
+  flags.DEFINE_bool("ground_limits", True, "--lidar: refuse a ground that cannot be one (under a "
+                    "wrong --up, > 5 m below the sensor, most of a sweep); --noground_limits "
+                    "accepts it.")
   flags.DEFINE_enum("up", None, ["x", "y", "z"], "The clouds' up axis (z: LiDAR; y: the models' "
                     "frame): rotated into the models' frame, the flow back. Default: z with "
                     "--lidar, else y.")
@@ -117,7 +122,7 @@ def main(argv):
   prediction = predictor.predict(
     pc1, pc2, num_iters=num_iters, max_points=max_points, full=not max_points,
     corr_chunk=corr_chunk, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=FLAGS.lidar,
-    up=FLAGS.up, max_range=FLAGS.max_range)
+    up=FLAGS.up, max_range=FLAGS.max_range, ground_limits=FLAGS.ground_limits)
   up = prediction.up
   if prediction.sweep is not None:
     print(f"note: {prediction.sweep.note()}", file=sys.stderr)
@@ -138,12 +143,18 @@ def main(argv):
   for note in prediction.notes:
     if note not in warnings:
       print(f"note: {note}", file=sys.stderr)
-  how = "ground and far points removed; " if FLAGS.lidar else ""
-  how += "; ".join(_used(name, n, max_points) for name, n in zip(("PC1", "PC2"), prediction.used))
-  how += f"; {num_iters} iterations" if FLAGS.method in methods.NEEDS_NETWORK else ""
-  how += f"; method {FLAGS.method}" + (" at every point" if FLAGS.method == "optimise" else "")
-  if FLAGS.method == "nsfp":
-    how += f" ({predictor.method_settings.objective} objective)"
+  sweep_only = prediction.sweep is not None and prediction.sweep.ego.start != "flow_fn"
+  if sweep_only:  # a 360-degree sweep: jaxflow.sweep's fits, the method did not run
+    how = (f"ground, ego-motion and {len(prediction.sweep.objects.moved)} moving objects "
+           "(jaxflow.sweep)" + ("; the network's flow a start" if prediction.sweep.used_network
+                                 else ""))
+  else:
+    how = "ground and far points removed; " if FLAGS.lidar else ""
+    how += "; ".join(_used(name, n, max_points) for name, n in zip(("PC1", "PC2"), prediction.used))
+    how += f"; {num_iters} iterations" if FLAGS.method in methods.NEEDS_NETWORK else ""
+    how += f"; method {FLAGS.method}" + (" at every point" if FLAGS.method == "optimise" else "")
+    if FLAGS.method == "nsfp":
+      how += f" ({predictor.method_settings.objective} objective)"
   print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points ({how}; {predictor.name})",
         file=sys.stderr)
   for warning in warnings:

@@ -119,7 +119,7 @@ class SubmissionWriter:
 
 def user_pair(folder, pc1_path, pc1_Nx3, flow_Nx3, sweep) -> list:
   """predict's --submission (None: nothing, []): `write_user_pair` with the ego-motion of
-  `sweep` (ground.SweepInfo of predict --lidar; None without --lidar: a ConfigError)."""
+  `sweep` (sweep.SweepInfo of predict --lidar; None without --lidar: a ConfigError)."""
   if not folder:
     return []
   if not sweep:

@@ -119,11 +119,11 @@ def write_html(path, pc1_Nx3, pc2_Mx3, flow_Nx3, **kwargs) -> pathlib.Path:
 
 def render(path, pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", sweep=None, title=None, **kwargs):
   """predict's --render: by the suffix of `path`, .png the top view (jaxflow.viz.render_sweep) or
-  .html this page. `sweep` (jaxflow.ground.SweepInfo of predict --lidar) gives the
+  .html this page. `sweep` (jaxflow.sweep.SweepInfo of predict --lidar) gives the
   ego-motion, the removed ground and the range; kwargs go to the view."""
   if sweep is not None:
-    kwargs = dict(ego_flow=sweep.motion.flow(pc1_Nx3), ground1=sweep.planes[0].ground(pc1_Nx3),
-                  ground2=sweep.planes[1].ground(pc2_Mx3), max_range=sweep.max_range, **kwargs)
+    kwargs = dict(ego_flow=sweep.motion.flow(pc1_Nx3), ground1=sweep.ground_masks[0],
+                  ground2=sweep.ground_masks[1], max_range=sweep.max_range, **kwargs)
   suffix = pathlib.Path(path).suffix.lower()
   if suffix == ".html":
     return write_html(path, pc1_Nx3, pc2_Mx3, flow_Nx3, up=up, title=title, **kwargs)

@@ -1,5 +1,7 @@
 """jaxflow.ground and jaxflow.rigid: ground removal, range cut, rigid fits, against known truth."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -93,26 +95,45 @@ def test_static_fit_ignores_moving_objects():
   assert (m.inliers == static).mean() > 0.99
 
 
-def test_raw_sweep_flow_gives_every_point_a_flow():
-  pts, h, _, _ = street(up=1)  # camera-like: y up
-  pts = np.concatenate([pts, [[0, 6, 60], [1, 6, 50]]]).astype(np.float32)  # two far points
-  r, t = rotation([0, 1, 0], 1.5), np.array([0.1, 0.0, 1.0])
-  ego_Nx3 = (pts @ r.T + t - pts).astype(np.float32)
-  seen = {}
+def hilly_street(seed=0):
+  """Points of a crowned road (0.15 m crown over 8 m) that starts climbing 7% at x = 15 m, boxes
+  on it; returns the points and their true height above the ground (a closed form)."""
+  rng = np.random.default_rng(seed)
 
-  def flow_fn(a, b):  # a perfect estimator of the ego-motion, with one moving box
-    seen["n"] = len(a)
-    out = (a @ r.T + t - a).astype(np.float32)
-    out[a[:, 0] > 12] += [0, 0, 2.0]
-    return out
+  def height(x, y):
+    return -1.9 + 0.15 * np.clip(1 - np.abs(y) / 8, 0, 1) + 0.07 * np.maximum(x - 15, 0)
 
-  flow, info = ground.raw_sweep_flow(flow_fn, pts, pts @ r.T + t, up="y", max_range=35)
-  assert flow.shape == pts.shape and np.isfinite(flow).all()
-  removed = (np.r_[h, 0, 0] < ground.GROUND_MARGIN) | (np.arange(len(pts)) >= len(h))
-  assert abs(info.ground[0] + info.far[0] - removed.sum()) <= 0.005 * len(pts)
-  assert seen["n"] == info.kept[0] == len(pts) - info.ground[0] - info.far[0]
-  assert info.far[0] >= 2
-  np.testing.assert_allclose(flow[-2:], ego_Nx3[-2:], atol=1e-3)  # far: the ego-motion
-  ground_rows = np.flatnonzero(h < 0.1)
-  np.testing.assert_allclose(flow[ground_rows], ego_Nx3[ground_rows], atol=1e-3)
-  assert "ego-motion flow of a rigid fit" in info.note()
+  xy = rng.uniform(-60, 60, (30000, 2))
+  g = np.c_[xy, height(*xy.T) + rng.normal(0, 0.01, len(xy))]
+  boxes = []
+  for cx, cy in ((8, 3), (30, -4), (45, 5), (-20, 2), (-35, -5)):
+    local = rng.uniform(0, 1, (500, 3)) * [4, 1.8, 1.5] + [cx, cy, 0.3]
+    boxes.append(np.c_[local[:, :2], height(local[:, 0], local[:, 1]) + local[:, 2]])
+  pts = np.concatenate([g, *boxes])
+  return pts.astype(np.float32), pts[:, 2] - height(pts[:, 0], pts[:, 1])
+
+
+def test_local_ground_follows_slopes_and_crowns_where_one_plane_cannot():
+  pts, true_height = hilly_street()
+  surface = ground.fit_surface(pts, "z")
+  on_ground = np.abs(true_height) < 0.05
+  error = np.abs(surface.height(pts[on_ground]) - true_height[on_ground])
+  assert np.percentile(error, 99) < 0.03 and error.max() < 0.1  # the crest and the crown's ridge
+  truth = true_height < ground.GROUND_MARGIN
+  assert (surface.ground(pts) != truth).mean() < 0.01
+  plane = ground.fit_ground(pts, "z", None)
+  assert (plane.ground(pts) != truth).mean() > 0.1  # one plane misses the climbing road
+  assert surface.sensor_height == pytest.approx(1.9 - 0.15, abs=0.05)
+
+
+def test_a_wall_taken_for_the_ground_is_refused_with_the_way_out():
+  pts, _ = hilly_street()
+  with pytest.raises(DataError, match=r"--up z"):
+    ground.check_up_axis(pts, "y", "sweep.bin", 0.3)
+  ground.check_up_axis(pts, "z", "sweep.bin", 0.8)  # the right axis passes
+  surface = ground.fit_surface(pts, "z")
+  far = dataclasses.replace(surface, coef_HxWx3=surface.coef_HxWx3 - [0, 0, 8.0])
+  with pytest.raises(DataError, match="8.* m below the sensor.*ground_limits=False"):
+    ground.check_ground(far, np.zeros(len(pts), bool), "sweep.bin", "z")
+  with pytest.raises(DataError, match="holds 90% of the points.*ground_limits=False"):
+    ground.check_ground(surface, np.arange(100) < 90, "sweep.bin", "z")

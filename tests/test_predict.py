@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import default
-from jaxflow import checkpointing, export, inference, rigid, train_state
+from jaxflow import checkpointing, export, inference, train_state
 from jaxflow.data import open_dataset, read_points
 from jaxflow.errors import DataError
 from jaxflow.data.sampling import sample_pair
@@ -272,10 +272,7 @@ def test_lidar_gives_every_raw_point_a_flow_and_saves_it(runs, files, predictor)
   stem = export.flow_stem(f"{files / 'raw1.npy'},{files / 'raw2.npy'}")
   saved = files / "flows" / f"{stem}.npy"
   np.testing.assert_array_equal(np.load(saved), flow)
-  # The 250 ground and 20 far points of the construction follow one rigid motion.
-  removed = np.r_[0:250, len(raw1) - 20:len(raw1)]
-  fit = rigid.kabsch(raw1[removed], raw1[removed] + flow[removed])
-  np.testing.assert_allclose(fit.flow(raw1[removed]), flow[removed], atol=1e-3)
+  # The flow itself is checked against a sweep's true ego-motion in tests/test_sweep.py.
   api = inference.predict_flow(raw1, raw2, num_iters=2, predictor=predictor, lidar=True, up="z")
   np.testing.assert_allclose(api, flow, atol=1e-4)
 

@@ -9,7 +9,7 @@ which registers its formats with `jaxflow.data.registry`.
 
 import importlib
 
-READER_MODULES = ("hdf5", "opensf", "readers", "synthetic")  # each registers its formats
+READER_MODULES = ("hdf5", "opensf", "readers", "synthetic", "synthetic_sweep")  # each registers its formats
 _NAMES = {"BatchLoader": "pipeline", "eval_batches": "pipeline", "read_points": "pointfiles",
           "Dataset": "registry", "Pair": "registry", "sample_pair": "sampling"}
 

@@ -1,0 +1,130 @@
+r"""Raw LiDAR sweeps (issue 26): jaxflow.sweep on the synthetic 360-degree sweeps' TEST split and
+the raw shared KITTI frame, and what each piece gains. Prints markdown tables, writes JSON.
+
+    PYTHONPATH=. python benchmarks/sweeps.py --pairs 10 [--network-pairs 3] --json OUT.json
+
+Rows (three-way EPE of the AV2 challenge over each pair's eval mask: non-ground, |x|, |y| <= 50 m;
+FD / FS / BS averaged over the pairs that have such points, "mean" over the pairs' means):
+- zero flow; the ego-motion alone (jaxflow.ego; every point static); the default pipeline (ego +
+  moving objects); the same on 8192-point samples of each sweep (the network's input size);
+- with --network-pairs: the pipeline with the shipped network's flow as a start, and the previous
+  `predict --lidar` (a255f3d: the network on the non-ground points within 35 m, every other point
+  the rigid motion fitted to its static part), both with the network alone (8192 points, 32
+  iterations), on the first pairs only (a network call takes 5-80 s on a loaded 2-core CPU).
+Seconds: wall time a pair in this process (the machine may be shared; the JSON says how loaded).
+"""
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import time
+
+import numpy as np
+
+from jaxflow import metrics, rigid, sweep
+from jaxflow.data import synthetic_sweep as ss
+
+KITTI = pathlib.Path(__file__).resolve().parents[2] / "shared/data/KITTI_processed_occ_final/000002"
+
+
+def three_way(flow, s):
+  return metrics.three_way_epe(flow, s.flow, s.ego_flow, s.foreground, s.eval_mask)
+
+
+def subsample(s, n, seed=0):
+  rng = np.random.default_rng(seed)
+  i = np.sort(rng.choice(len(s.pc1), min(n, len(s.pc1)), replace=False))
+  j = np.sort(rng.choice(len(s.pc2), min(n, len(s.pc2)), replace=False))
+  return ss.SweepPair(s.pc1[i], s.pc2[j], s.flow[i], s.ego_flow[i], s.category[i], s.instance[i],
+                      s.ground[i], s.ground2[j], s.ego_rotation, s.ego_translation, s.name)
+
+
+def old_lidar(network, s):
+  """The previous --lidar: network on the non-ground points within 35 m (one RANSAC plane per
+  sweep), the rigid fit to its static part for the rest."""
+  from jaxflow import ground  # pylint: disable=import-outside-toplevel
+  k1 = ~ground.fit_ground(s.pc1).ground(s.pc1) & ground.within_range(s.pc1)
+  k2 = ~ground.fit_ground(s.pc2).ground(s.pc2) & ground.within_range(s.pc2)
+  kept = network(s.pc1[k1], s.pc2[k2])
+  motion = rigid.fit_static_motion(s.pc1[k1], kept)
+  flow = motion.flow(s.pc1)
+  flow[k1] = kept
+  return flow
+
+
+def table(rows):
+  out = ["| method | pairs | EPE FD | EPE FS | EPE BS | three-way | EPE all | s / pair |",
+         "|---|---|---|---|---|---|---|---|"]
+  for name, r in rows.items():
+    out.append(f"| {name} | {r['pairs']} | {r['fd']:.4f} | {r['fs']:.4f} | {r['bs']:.4f} | "
+               f"{r['mean']:.4f} | {r['epe']:.4f} | {r['seconds']:.1f} |")
+  return "\n".join(out)
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  parser.add_argument("--pairs", type=int, default=10)
+  parser.add_argument("--network-pairs", type=int, default=0)
+  parser.add_argument("--split", default="test")
+  parser.add_argument("--json", default=None)
+  args = parser.parse_args()
+  methods = {
+    "zero flow": lambda s: np.zeros_like(s.pc1),
+    "ego-motion alone": lambda s: sweep.raw_sweep_flow(None, s.pc1, s.pc2,
+                                                       moving_objects=False)[0],
+    "ego + objects (default)": lambda s: sweep.raw_sweep_flow(None, s.pc1, s.pc2)[0],
+    "ego + objects, 8192-point sweeps": "sub",
+  }
+  network = None
+  if args.network_pairs:
+    from jaxflow import predict  # pylint: disable=import-outside-toplevel
+    predictor = predict.load_predictor(method="network")
+    network = lambda a, b: predictor(a, b)
+    methods["ego + objects, network start"] = lambda s: sweep.raw_sweep_flow(
+      network, s.pc1, s.pc2, use_network=True)[0]
+    methods["previous --lidar (network, rigid fit)"] = lambda s: old_lidar(network, s)
+  per = {k: [] for k in methods}
+  for i in range(args.pairs):
+    s = ss.sweep_pair(args.split, i)
+    for name, fn in methods.items():
+      if "network" in name and i >= args.network_pairs:
+        continue
+      pair = subsample(s, 8192) if fn == "sub" else s
+      start = time.perf_counter()
+      flow = sweep.raw_sweep_flow(None, pair.pc1, pair.pc2)[0] if fn == "sub" else fn(pair)
+      seconds = time.perf_counter() - start
+      r = three_way(flow, pair)
+      r["epe"] = float(np.linalg.norm(flow - pair.flow, axis=1).mean())
+      r["seconds"] = seconds
+      per[name].append(r)
+      print(f"{s.name} {len(s.pc1)} points, {name}: "
+            + " ".join(f"{k} {v:.4f}" for k, v in r.items()), flush=True)
+  rows = {}
+  for name, rs in per.items():
+    if rs:
+      rows[name] = {k: float(np.nanmean([r[k] for r in rs])) for k in rs[0]}
+      rows[name]["pairs"] = len(rs)
+  print(f"\nsynthetic_sweep {args.split} pairs 0-{args.pairs - 1}\n" + table(rows))
+  kitti = {}
+  if (KITTI / "pc1.npy").exists():  # raw frame, camera axes (y up), rows correspond
+    from jaxflow.data.readers import kitti_keep  # pylint: disable=import-outside-toplevel
+    raw1, raw2 = np.load(KITTI / "pc1.npy"), np.load(KITTI / "pc2.npy")
+    keep = kitti_keep(raw1, raw2)
+    start = time.perf_counter()
+    flow, info = sweep.raw_sweep_flow(None, raw1, raw2, up="y")
+    kitti = {"epe_loader_points": float(np.linalg.norm(flow - (raw2 - raw1), axis=1)[keep].mean()),
+             "seconds": time.perf_counter() - start, "points": len(raw1), "note": info.note()}
+    print(f"\nKITTI 000002 raw frame (up y): EPE on the loader's {keep.sum()} points "
+          f"{kitti['epe_loader_points']:.4f} m, {kitti['seconds']:.1f} s\n{info.note()}")
+  if args.json:
+    machine = {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+               "load_average": os.getloadavg()}
+    pathlib.Path(args.json).write_text(json.dumps(
+      {"machine": machine, "split": args.split, "rows": rows, "per_pair": per, "kitti": kitti},
+      indent=2) + "\n")
+
+
+if __name__ == "__main__":
+  main()

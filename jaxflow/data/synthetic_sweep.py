@@ -1,0 +1,294 @@
+"""Raw 360-degree LiDAR sweep pairs, as a driving car's roof sensor records them (issue 26).
+
+    sweep = sweep_pair("val", 3)          # a SweepPair: pc1, pc2, flow, ego flow, labels, ground
+    ds = open_dataset("synthetic_sweep:20", "test")   # as jaxflow Pairs (evaluate.py)
+
+Unlike `synthetic_lidar` (the KITTI loader's cut: no ground, 35 m, the camera's field of view, y up)
+these pairs are what a raw sweep is: z up (x forward, y left), the full azimuth, 32, 64 or 128
+beams from -25 to +15 degrees, ranges to 100 m, the ground KEPT (a crowned road with raised
+sidewalks and, in some scenes, a slope that starts ahead or behind), the ego car moving 0-3 m a
+frame with a yaw rate, parked and moving cars, pedestrians, cyclists, buildings, poles and trees.
+The two sweeps are ray-cast independently from the sensor's two poses (their own azimuth phase and
+range noise): no point of pc2 is a moved pc1 point, as in real sweeps.
+
+Per point of pc1: `flow` (where the surface point is in frame 2, in frame 2's sensor coordinates:
+ego-motion included, the OpenSceneFlow convention), `ego_flow` (the flow the point would have if
+static: the sensor's motion alone), `category` (av2's CATEGORY_TO_INDEX: 0 background, 19
+REGULAR_VEHICLE, 17 PEDESTRIAN, 4 BICYCLIST), `instance` (0 for the background), `ground` (bool).
+`eval_mask`: the AV2 challenge's points (non-ground, |x|, |y| <= 50 m).
+
+Splits are seed ranges: val (for choosing settings) and test (for reporting only) never share a
+scene; each pair is determined by (split, index). Scenes are built in `jaxflow.data.synthetic`'s
+internal frame (y up, z forward) with its ray caster, then turned to z up by a cyclic permutation
+of the axes (a proper rotation, so rigid motions stay rigid).
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+
+from jaxflow.data import synthetic as syn
+from jaxflow.data.registry import Dataset, Pair, register
+from jaxflow.errors import DataError
+
+SPLITS = ("val", "test")
+SEED_BASE = {"val": 1_000_000, "test": 2_000_000}  # seeds: base + index (disjoint ranges)
+DEFAULT_COUNT = {"val": 50, "test": 50}
+BEAMS = (32, 64, 128)
+ELEVATION_DEG = (-25.0, 15.0)
+RAYS = 120_000  # rays a sweep at scale 1 (about 80-100k returns)
+MAX_RANGE = 100.0
+RANGE_NOISE = 0.01  # metres, one sigma along the ray
+EVAL_BOX = 50.0  # |x|, |y| <= this: the AV2 challenge's evaluated points
+BACKGROUND, BICYCLIST, PEDESTRIAN, REGULAR_VEHICLE = 0, 4, 17, 19  # av2 CATEGORY_TO_INDEX
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepPair:
+  """Two raw sweeps (float32, z up) and pc1's labels; ego_motion maps frame-1 to frame-2 sensor
+  coordinates (x -> R x + t, the flow of a static point is R x + t - x)."""
+  pc1: np.ndarray  # N x 3
+  pc2: np.ndarray  # M x 3
+  flow: np.ndarray  # N x 3, ego-motion included
+  ego_flow: np.ndarray  # N x 3
+  category: np.ndarray  # N uint8
+  instance: np.ndarray  # N int16
+  ground: np.ndarray  # N bool
+  ground2: np.ndarray  # M bool
+  ego_rotation: np.ndarray  # 3 x 3
+  ego_translation: np.ndarray  # 3
+  name: str
+
+  @property
+  def eval_mask(self) -> np.ndarray:
+    return ~self.ground & (np.abs(self.pc1[:, :2]) <= EVAL_BOX).all(1)
+
+  @property
+  def foreground(self) -> np.ndarray:
+    return self.category != BACKGROUND
+
+  def to_pair(self) -> Pair:
+    """As a jaxflow Pair: mask = eval_mask, rigid_flow = ego_flow (the three-way EPE)."""
+    return Pair(self.pc1, self.pc2, self.flow, self.eval_mask, self.name, rigid_flow=self.ego_flow,
+                foreground=self.foreground)
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+  """What a scene may hold (the defaults: everything drawn at random)."""
+  ground: bool = True
+  speed: tuple | None = None  # (lo, hi) m a frame; None: 0-3 with parked and slow scenes
+  movers: bool = True  # moving cars, pedestrians and cyclists
+  scale: float = 1.0  # rays x scale (0.05: ~5k points, for tests)
+  beams: int | None = None
+
+
+# z up (x forward, y left) <- the caster's frame (x, y up, z forward): a cyclic permutation.
+_TO_Z_UP = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def _grid(rng, beams: int, columns: int) -> syn.Grid:
+  el = np.deg2rad(np.linspace(*ELEVATION_DEG, beams))
+  step = 2 * math.pi / columns
+  az = -math.pi + (np.arange(columns) + rng.random()) * step
+  ce, se, ca, sa = np.cos(el)[:, None], np.sin(el)[:, None], np.cos(az), np.sin(az)
+  dirs = np.stack([ce * sa, np.broadcast_to(se, (beams, columns)), ce * ca])
+  return syn.Grid(dirs, el, el, az - step / 2, az + step / 2, pinhole=False)
+
+
+class _Street:
+  """The ground's height field (caster frame: x across the road, z along it) and its planes."""
+
+  def __init__(self, rng, sensor_height: float):
+    self.g = -sensor_height
+    self.road = rng.uniform(9.0, 12.0)  # half width: parking, a cycle lane, two lanes, the ego's
+    self.crown = rng.uniform(0.0, 0.15)  # road centre above its edges
+    self.kerb = rng.uniform(0.08, 0.18)
+    hill = rng.random()
+    self.ahead = (rng.uniform(8, 30), rng.uniform(-0.07, 0.07)) if hill < 0.4 else None
+    self.behind = (rng.uniform(-30, -8), rng.uniform(-0.07, 0.07)) if 0.25 < hill < 0.55 else None
+
+  def along(self, z):
+    """Height of the road's edge line at z (the slope part)."""
+    h = self.g
+    if self.ahead and z > self.ahead[0]:
+      h += (z - self.ahead[0]) * self.ahead[1]
+    if self.behind and z < self.behind[0]:
+      h += (z - self.behind[0]) * self.behind[1]
+    return h
+
+  def height(self, x, z):
+    across = self.crown * max(0.0, 1 - abs(x) / self.road) if abs(x) < self.road else self.kerb
+    return self.along(z) + across
+
+  def planes(self):
+    """[(kind, rot, pos, size)] of the ground: road halves (crowned planes) and sidewalks (slabs)
+    per segment of the slope."""
+    cuts = [-110.0] + ([self.behind[0]] if self.behind else []) + (
+      [self.ahead[0]] if self.ahead else []) + [110.0]
+    out = []
+    for z0, z1 in zip(cuts[:-1], cuts[1:]):
+      zc = (z0 + z1) / 2
+      grade = (self.along(z1) - self.along(z0)) / (z1 - z0)
+      pitch = syn.rotation((1, 0, 0), -math.atan(grade))
+      half_z = (z1 - z0) / 2 * math.sqrt(1 + grade * grade)
+      for side in (-1, 1):
+        roll = syn.rotation((0, 0, 1), -side * math.atan(self.crown / self.road))
+        pos = (side * self.road / 2, self.along(zc) + self.crown / 2, zc)
+        out.append((syn.PLANE, pitch @ roll, pos, (self.road / 2, 0, half_z)))
+        walk, depth = 55.0, 0.6  # a slab: its top is the sidewalk, its side the kerb
+        pos = (side * (self.road + walk), self.along(zc) + self.kerb - depth / 2, zc)
+        out.append((syn.BOX, pitch, pos, (walk, depth / 2, half_z)))
+    return out
+
+
+def _person(rng):
+  return [(syn.CYLINDER, syn._I, (0, 0.8, 0), (rng.uniform(0.18, 0.26), 0.8, 0), None),
+          (syn.ELLIPSOID, syn._I, (0, 1.8, 0), (0.13,) * 3, None)]
+
+
+def _cyclist(rng):
+  return [(syn.BOX, syn._I, (0, 0.45, 0), (0.08, 0.35, 0.85), None),
+          (syn.CYLINDER, syn._I, (0, 1.25, 0), (0.2, 0.45, 0), None)]
+
+
+def build_scene(rng, opt: Options = Options()):
+  """(Scene in the caster's frame, category per primitive, instance per primitive, ground prims)."""
+  speed = rng.uniform(*opt.speed) if opt.speed else (
+    0.0 if rng.random() < 0.1 else rng.uniform(0.1, 1.0) if rng.random() < 0.4
+    else rng.uniform(1.0, 3.0))
+  yaw = np.deg2rad(rng.uniform(-3, 3)) * (0.3 if speed > 2 else 1.0) * (speed > 0)
+  tilt = syn.rotation((1, 0, 0), np.deg2rad(rng.normal(0, 0.15))) @ syn.rotation(
+    (0, 0, 1), np.deg2rad(rng.normal(0, 0.1))) if speed > 0 else syn._I
+  sensor_rot = syn.rotation((0, 1, 0), yaw) @ tilt
+  sensor_pos = (math.sin(yaw / 2) * speed, 0.0, math.cos(yaw / 2) * speed)
+  builder = syn._Builder(sensor_rot, sensor_pos)
+  street = _Street(rng, rng.uniform(1.7, 2.1))
+  cats, insts, grounds = [], [], []
+
+  def add(parts, rot, pos, cat=BACKGROUND, motion_rot=None, motion_pos=None, is_ground=False):
+    inst = len(set(insts)) + 1 if cat != BACKGROUND else 0
+    builder.add(parts, rot, pos, motion_rot, motion_pos)
+    cats.extend([cat] * len(parts))
+    insts.extend([inst] * len(parts))
+    grounds.extend([is_ground] * len(parts))
+
+  if opt.ground:
+    for kind, rot, pos, size in street.planes():
+      add([(kind, syn._I, syn._Z, size, None)], rot, pos, is_ground=True)
+  road = street.road
+  for side in (-1, 1):
+    z = rng.uniform(-100, -80)
+    while z < 100:  # facades with gaps
+      length = rng.uniform(6, 30)
+      if rng.random() < 0.75:
+        x, height = side * (road + rng.uniform(3, 9)), rng.uniform(3, 18)
+        base = street.height(x, z + length / 2) - 2
+        add([(syn.BOX, syn._I, syn._Z, (4, height / 2 + 1, length / 2), None)],
+            syn.rotation((0, 1, 0), rng.uniform(-0.06, 0.06)),
+            (x + side * 4, base + height / 2 + 1, z + length / 2))
+      z += length + rng.uniform(0, 8)
+    for _ in range(rng.integers(3, 10)):  # poles and trees
+      x, z, h = side * (road + rng.uniform(0.4, 2.0)), rng.uniform(-60, 60), rng.uniform(3, 8)
+      parts = [(syn.CYLINDER, syn._I, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
+      if rng.random() < 0.5:
+        crown = rng.uniform(1.0, 2.5)
+        parts.append((syn.ELLIPSOID, syn._I, (0, h + crown * 0.6, 0), (crown, crown * 0.8, crown),
+                      syn._bump(rng, 0.12)))
+      add(parts, syn._I, (x, street.height(x, z) - 0.05, z))
+    for _ in range(rng.integers(1, 7)):  # parked cars along the kerb
+      x, z = side * (road - 1.1), rng.uniform(-50, 50)
+      heading = rng.uniform(-0.08, 0.08) + (side < 0) * math.pi
+      add(syn._car_parts(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
+          REGULAR_VEHICLE)
+    if not opt.movers:
+      continue
+    for _ in range(rng.integers(0, 4)):  # pedestrians on the sidewalk
+      x, z = side * (road + rng.uniform(0.6, 2.5)), rng.uniform(-30, 30)
+      walking = rng.random() < 0.7
+      add(_person(rng), syn._I, (x, street.height(x, z), z), PEDESTRIAN,
+          syn.rotation((0, 1, 0), rng.uniform(-0.1, 0.1)) if walking else None,
+          (rng.uniform(-0.05, 0.05), 0, rng.uniform(-0.18, 0.18)) if walking else None)
+    if rng.random() < 0.5:  # a cyclist near the kerb, riding with the traffic of its side
+      x, z = side * (road - 3.2), rng.uniform(-30, 30)
+      heading = 0.0 if side < 0 else math.pi
+      v = rng.uniform(0.3, 0.8)
+      add(_cyclist(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z), BICYCLIST,
+          syn._I, (0, 0, v * math.cos(heading)))
+  if opt.movers:
+    for lane in (0.8 - road / 2, road / 2 - 0.8):  # traffic: +z on the left lane, -z on the right
+      heading = 0.0 if lane < 0 else math.pi
+      z = rng.uniform(-60, -40)
+      while z < 60:
+        if abs(z) > 6 or lane > 0:  # the ego car drives at x = 0
+          v = 0.0 if rng.random() < 0.25 else rng.uniform(0.3, 3.0)
+          turn = np.deg2rad(rng.uniform(-2, 2)) * (v > 0)
+          d = np.array([math.sin(heading + turn / 2), 0, math.cos(heading + turn / 2)])
+          x = lane + rng.uniform(-0.2, 0.2)
+          add(syn._car_parts(rng), syn.rotation((0, 1, 0), heading + rng.uniform(-0.04, 0.04)),
+              (x, street.height(x, z), z), REGULAR_VEHICLE,
+              syn.rotation((0, 1, 0), turn) if v else None, v * d if v else None)
+        z += rng.uniform(10, 30)
+  return builder.scene(), np.array(cats, np.uint8), np.array(insts, np.int16), np.array(grounds)
+
+
+def _cast(scene, frame, rng, opt: Options, beams: int):
+  columns = max(16, round(RAYS * opt.scale / beams))
+  points, prim = syn.render(scene, frame, _grid(rng, beams, columns), max_depth=MAX_RANGE)
+  rng_ = np.sqrt((points * points).sum(0))
+  keep = np.flatnonzero(rng_ <= MAX_RANGE)
+  points, prim, rng_ = points.take(keep, axis=1), prim[keep], rng_[keep]
+  noise = points * (rng.normal(0, RANGE_NOISE, len(rng_)) / np.maximum(rng_, 1e-6))
+  return points, prim, noise
+
+
+def sweep_pair(split: str, index: int, options: Options = Options()) -> SweepPair:
+  """Pair `index` of `split` (val or test): see the module docstring."""
+  if split not in SPLITS:
+    raise DataError(f"synthetic_sweep/{split}", f"unknown split; expected one of {SPLITS}")
+  rng = np.random.default_rng(SEED_BASE[split] + index)
+  scene, cat_P, inst_P, ground_P = build_scene(rng, options)
+  beams = options.beams or int(rng.choice(BEAMS))
+  p1, prim1, noise1 = _cast(scene, 0, rng, options, beams)
+  p2, prim2, noise2 = _cast(scene, 1, rng, options, beams)
+  p1 = p1 + noise1  # the measured point moves with its object
+  moved = syn.warp(scene, p1, prim1)  # the same points in frame 2
+  static = dataclasses.replace(scene, obj_P=np.zeros_like(scene.obj_P))
+  ego = syn.warp(static, p1, prim1)
+  z_up = lambda a_3xN: np.ascontiguousarray((_TO_Z_UP @ a_3xN).T, np.float32)
+  a, b = scene.a_Kx3x3[0], scene.b_Kx3[0]  # the static world's (the sensor's) motion
+  return SweepPair(
+    pc1=z_up(p1), pc2=z_up(p2 + noise2), flow=z_up(moved - p1), ego_flow=z_up(ego - p1),
+    category=cat_P[prim1], instance=inst_P[prim1], ground=ground_P[prim1], ground2=ground_P[prim2],
+    ego_rotation=_TO_Z_UP @ a @ _TO_Z_UP.T, ego_translation=_TO_Z_UP @ b,
+    name=f"synthetic_sweep/{split}/{index}")
+
+
+class SyntheticSweep(Dataset):
+  """`count` raw sweep pairs of one split, generated on demand."""
+
+  def __init__(self, split: str, count: int):
+    self.split, self.count, self.name = split, count, f"synthetic_sweep:{count}"
+
+  def __len__(self):
+    return self.count
+
+  def load(self, i):
+    return sweep_pair(self.split, i).to_pair()
+
+  def describe(self):
+    return f"{self.name} split={self.split}: {self.count} raw 360-degree sweep pairs, z up"
+
+
+def open_sweeps(count: str, split: str | None) -> SyntheticSweep:
+  spec = f"synthetic_sweep:{count}"
+  split = split or "val"
+  if split not in SPLITS:
+    raise DataError(spec, f"unknown split {split!r}; synthetic_sweep's splits are {SPLITS}")
+  if count and (not count.isdigit() or int(count) < 1):
+    raise DataError(spec, f"COUNT must be a positive integer, got {count!r}")
+  return SyntheticSweep(split, int(count) if count else DEFAULT_COUNT[split])
+
+
+register("synthetic_sweep", open_sweeps)

@@ -1,0 +1,176 @@
+"""Scene flow of two raw LiDAR sweeps: the ground, the sensor's motion, the moving objects.
+
+    flow_Nx3, info = raw_sweep_flow(None, pc1_Nx3, pc2_Mx3, up="z")
+    print(info.note())
+
+Raw sweeps (360 degrees, ground kept, independently sampled) are mostly static world, so the
+sensor's own motion is most of the flow (issue 26):
+1. the ground of each sweep: local planes per cell (jaxflow.ground.fit_surface), refused when it
+   cannot be one (a wall under a wrong `up`; `ground_limits=False` overrides);
+2. the ego-motion: a robust ICP of the sweeps from several starts (jaxflow.ego);
+3. the ground again, fitted to both sweeps in pc1's frame, so the two agree;
+4. moving objects: groups of points the ego-motion does not explain, one rigid motion each
+   (jaxflow.objects); every other point, ground and far points included, gets the ego-motion flow.
+`flow_fn(pc1_kept, pc2_kept)` (e.g. the network on the non-ground points within `max_range`) is
+called only with `use_network=True`: its flow is then one more start for the ego-motion and for
+every object (benchmarks/METHODS.md measures what it adds). Any up axis: the work is done z up.
+"""
+
+import dataclasses
+
+import numpy as np
+
+from jaxflow import ego, ground, objects, rigid
+from jaxflow.errors import DataError
+
+MIN_AZIMUTH = 0.5  # of the azimuth a sweep covers at least (a camera's view covers less)
+MIN_PLANE_SHARE = 0.2  # of the points within 20 m on the ground plane, or there is no ground
+_TO_Z_UP = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}  # cyclic: proper rotations
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepInfo:
+  """What raw_sweep_flow did (counts are (pc1, pc2); `motion` in the input's axes)."""
+  sensor_height: float | None  # metres above pc1's ground (None: no ground found)
+  ground: tuple
+  far: tuple  # non-ground points beyond max_range
+  kept: tuple  # non-ground points within max_range (what flow_fn sees)
+  motion: rigid.Motion  # the ego-motion
+  ego: ego.EgoMotion
+  objects: objects.Found
+  max_range: float | None
+  used_network: bool
+  notes: tuple = ()  # fits that failed or look wrong
+  ground_masks: tuple = ()  # (pc1 N, pc2 M) bool: the points taken as ground (the pictures)
+
+  def note(self) -> str:
+    moved = sum(m[0] for m in self.objects.moved)
+    if self.ego.start == "flow_fn":  # a camera's view: the method's flow and its rigid part
+      return (f"--lidar: ground plane per 2 m cell; removed {self.ground[0]} ground and "
+              f"{self.far[0]} far points of PC1; flow estimated on {self.kept[0]} points; the "
+              f"removed PC1 points get the ego-motion flow of a rigid fit to its static part "
+              f"({self.motion.angle_deg:.2f} deg, {np.linalg.norm(self.motion.translation):.2f} m)"
+              + "".join(f"\nnote: {n}" for n in self.notes))
+    ground_text = ("no ground found" if self.sensor_height is None else
+                   f"ground plane per 2 m cell (sensor {self.sensor_height:.2f} m above it)")
+    return (f"--lidar: {ground_text}; removed {self.ground[0]} ground points of PC1 "
+            f"({self.ground[1]} of PC2); ego-motion {self.ego.motion.angle_deg:.2f} deg, "
+            f"{np.linalg.norm(self.motion.translation):.2f} m ({self.ego.start} start, "
+            f"{100 * self.ego.inlier_fraction:.0f}% of the points explained); "
+            f"{len(self.objects.moved)} of {self.objects.candidates} candidate objects move "
+            f"({moved} points); the other {self.kept[0] + self.far[0] + self.ground[0] - moved} "
+            "PC1 points get the ego-motion flow"
+            + ("; the network's flow was a start" if self.used_network else "")
+            + "".join(f"\nnote: {n}" for n in self.notes))
+
+
+def _surface(points_Nx3, name, notes):
+  """(Surface or None, ground N): None with a note when no ground plane is found."""
+  try:
+    plane = ground.fit_ground(points_Nx3, "z", 20.0, name=name)
+  except DataError as e:
+    notes.append(f"{e}; no point of {name} is taken as ground")
+    return None, np.zeros(len(points_Nx3), bool)
+  near = int(ground.within_range(points_Nx3, "z", 20.0).sum())
+  if plane.inliers < MIN_PLANE_SHARE * near:  # a road holds ~60% of the points near the sensor
+    notes.append(f"{name}: no ground found (the best plane under the sensor holds "
+                 f"{plane.inliers} of the {near} points within 20 m); no point is taken as ground")
+    return None, np.zeros(len(points_Nx3), bool)
+  surface = ground.fit_surface(points_Nx3, "z", plane, name)
+  return surface, surface.ground(points_Nx3)
+
+
+def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
+                   max_range: float | None = ground.DEFAULT_MAX_RANGE, names=("pc1", "pc2"),
+                   use_network: bool = False, ground_limits: bool = True,
+                   moving_objects: bool = True, seed: int = 0) -> tuple[np.ndarray, SweepInfo]:
+  """Flow N x 3 (float32) of EVERY point of pc1 and a SweepInfo (module docstring);
+  moving_objects=False: the ego-motion flow for every point (what the objects step adds)."""
+  ground.axis(up)  # a ConfigError for a wrong name
+  order = _TO_Z_UP[up]
+  back = np.argsort(order)
+  pc1 = np.asarray(pc1_Nx3, np.float64)[:, order]
+  pc2 = np.asarray(pc2_Mx3, np.float64)[:, order]
+  notes = []
+  surf1, g1 = _surface(pc1, names[0], notes)
+  surf2, g2 = _surface(pc2, names[1], notes)
+  if ground_limits:
+    for raw, surf, g, name in ((pc1_Nx3, surf1, g1, names[0]), (pc2_Mx3, surf2, g2, names[1])):
+      ground.check_up_axis(raw, up, name, g.mean() if surf is not None else 0.0)
+      if surf is not None:
+        ground.check_ground(surf, g, name, up)
+  near1, near2 = ground.within_range(pc1, "z", max_range), ground.within_range(pc2, "z", max_range)
+  keep1, keep2 = ~g1 & near1, ~g2 & near2
+  view = azimuth_coverage(pc1)
+  if view < MIN_AZIMUTH and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
+    return _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, order,
+                        surf1, max_range, notes + [
+                          f"{names[0]} covers {360 * view:.0f} of 360 degrees of azimuth: a "
+                          "camera's view, not a sweep; the flow of its non-ground points within "
+                          "max_range is the method's, the rest gets the rigid motion of their "
+                          "static part"])
+  if view < MIN_AZIMUTH:
+    notes.append(f"{names[0]} covers {360 * view:.0f} of 360 degrees of azimuth: a camera's view, "
+                 "not a sweep; the sweep's ego-motion fit may be wrong there")
+  starts, start_flow = {}, None
+  if use_network and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
+    kept_flow = np.asarray(flow_fn(np.asarray(pc1_Nx3, np.float32)[keep1],
+                                   np.asarray(pc2_Mx3, np.float32)[keep2]), np.float64)
+    start_flow = np.full_like(pc1, np.nan)
+    start_flow[keep1] = kept_flow[:, order]
+    starts["network"] = rigid.fit_static_motion(pc1[keep1], start_flow[keep1])
+  fit = ego.estimate(pc1, pc2, g1, g2, surf2, starts, seed)
+  if fit.note:
+    notes.append(fit.note)
+  surface = surf1
+  if surf1 is not None and surf2 is not None:  # one ground for both sweeps, in pc1's frame
+    inverse = rigid.Motion(fit.motion.rotation.T, -fit.motion.rotation.T @ fit.motion.translation)
+    both = np.concatenate([pc1, inverse.apply(pc2)])
+    surface = ground.fit_surface(both, "z", None, names[0])
+    g1 = surface.ground(pc1)
+    g2 = surface.ground(inverse.apply(pc2))
+  if moving_objects:
+    flow, found = objects.object_flow(pc1, pc2, g1, g2, fit.motion, surface, start_flow, seed)
+  else:
+    flow, found = fit.motion.flow(pc1), objects.Found(0, 0, [])
+  if not np.isfinite(flow).all():  # never reached by construction; never returned either
+    raise FloatingPointError("raw_sweep_flow: a non-finite flow")
+  p = np.eye(3)[order]  # z-up coordinates = p @ input coordinates
+  motion = rigid.Motion(p.T @ fit.motion.rotation @ p, p.T @ fit.motion.translation)
+  info = SweepInfo(
+    sensor_height=None if surf1 is None else surf1.sensor_height,
+    ground=(int(g1.sum()), int(g2.sum())),
+    far=(int((~g1 & ~near1).sum()), int((~g2 & ~near2).sum())),
+    kept=(int((~g1 & near1).sum()), int((~g2 & near2).sum())), motion=motion, ego=fit,
+    objects=found, max_range=max_range, used_network=start_flow is not None, notes=tuple(notes),
+    ground_masks=(g1, g2))
+  return np.ascontiguousarray(flow[:, back], np.float32), info
+
+
+def azimuth_coverage(points_Nx3) -> float:
+  """Share of 36 azimuth sectors (z up) holding at least 0.1% of the points."""
+  azimuth = np.arctan2(points_Nx3[:, 1], points_Nx3[:, 0])
+  counts = np.histogram(azimuth, 36, (-np.pi, np.pi))[0]
+  return float((counts >= max(1, 1e-3 * len(points_Nx3))).mean())
+
+
+def _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, order, surf1,
+                 max_range, notes):
+  """A camera-frame pair (e.g. KITTI's stereo frames): flow_fn on the kept points, the removed
+  ones the rigid motion of the static part of that flow (jaxflow.rigid)."""
+  pc1 = np.asarray(pc1_Nx3, np.float32)
+  kept_flow = np.asarray(flow_fn(pc1[keep1], np.asarray(pc2_Mx3, np.float32)[keep2]), np.float32)
+  motion = rigid.fit_static_motion(pc1[keep1], kept_flow)
+  flow = motion.flow(pc1)
+  flow[keep1] = kept_flow
+  p = np.eye(3)[order]
+  z_up = rigid.Motion(p @ motion.rotation @ p.T, p @ motion.translation)
+  fit = ego.EgoMotion(z_up, float(motion.inliers.mean()), float("nan"), "flow_fn", {})
+  info = SweepInfo(
+    sensor_height=None if surf1 is None else surf1.sensor_height,
+    ground=(int(g1.sum()), int(g2.sum())),
+    far=(int((~g1 & ~near1).sum()), int((~g2 & ~near2).sum())),
+    kept=(int(keep1.sum()), int(keep2.sum())), motion=motion, ego=fit,
+    objects=objects.Found(0, 0, []), max_range=max_range, used_network=True, notes=tuple(notes),
+    ground_masks=(g1, g2))
+  return flow, info

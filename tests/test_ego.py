@@ -1,0 +1,62 @@
+"""jaxflow.ego: the sensor's motion between two raw sweeps, against the generator's true motion."""
+
+import numpy as np
+import pytest
+
+from jaxflow import ego, ground, rigid
+from jaxflow.data import synthetic_sweep as ss
+
+
+def errors(motion, sweep):
+  """(rotation error in degrees, translation error in metres) against the true ego-motion."""
+  d = motion.rotation @ sweep.ego_rotation.T
+  angle = np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1)))
+  return angle, float(np.linalg.norm(motion.translation - sweep.ego_translation))
+
+
+def fit(sweep, **kwargs):
+  s1, s2 = ground.fit_surface(sweep.pc1), ground.fit_surface(sweep.pc2)
+  return ego.estimate(sweep.pc1, sweep.pc2, s1.ground(sweep.pc1), s2.ground(sweep.pc2), s2,
+                      **kwargs)
+
+
+@pytest.fixture(scope="module")
+def slow_sweep():
+  return ss.sweep_pair("val", 0, ss.Options(speed=(0.5, 0.6)))
+
+
+def test_recovered_to_a_centimetre_from_each_start(slow_sweep):
+  s = slow_sweep
+  true = rigid.Motion(s.ego_rotation, s.ego_translation)
+  c, sn = np.cos(np.radians(1.0)), np.sin(np.radians(1.0))
+  off = rigid.Motion(np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ true.rotation,
+                     true.translation + [0.3, -0.2, 0.05])  # network-like: 1 deg, 0.4 m off
+  result = fit(s, starts={"network": off})
+  assert set(result.starts) == {"zero", "network", "search"}
+  for name, (motion, _) in result.starts.items():
+    angle, shift = errors(motion, s)
+    assert angle < 0.05 and shift < 0.01, (name, angle, shift)
+  assert result.inlier_fraction > 0.7 and result.note is None
+
+
+def test_a_fast_sensor_is_recovered():
+  s = ss.sweep_pair("val", 3, ss.Options(speed=(2.9, 3.0)))
+  assert np.linalg.norm(s.ego_translation) > 2.8
+  angle, shift = errors(fit(s).motion, s)
+  assert angle < 0.05 and shift < 0.01
+
+
+def test_a_parked_sensor_gives_zero_motion():
+  s = ss.sweep_pair("val", 4, ss.Options(speed=(0.0, 0.0)))
+  result = fit(s)
+  assert np.abs(result.motion.flow(s.pc1)[s.category == 0]).max() < 0.01  # background flow zero
+
+
+def test_pc2_in_another_frame_is_warned_about(slow_sweep):
+  s = slow_sweep
+  c, sn = np.cos(np.radians(40)), np.sin(np.radians(40))
+  turned = s.pc2 @ np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]).T + [30.0, -12.0, 0.0]
+  s1, s2 = ground.fit_surface(s.pc1), ground.fit_surface(turned)
+  result = ego.estimate(s.pc1, turned, s1.ground(s.pc1), s2.ground(turned), s2)
+  assert result.inlier_fraction < ego.PLAUSIBLE_INLIERS
+  assert "explains only" in result.note and "consecutive sweeps" in result.note

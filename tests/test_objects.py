@@ -1,0 +1,58 @@
+"""jaxflow.objects: moving objects get their own rigid motion, static ones the ego-motion."""
+
+import numpy as np
+
+from jaxflow import objects, rigid
+
+
+def yaw(deg):
+  c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+  return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def box_surface(rng, centre, size, n):
+  """n points on the sides and top of a box standing on z = 0 (independent samples a call)."""
+  pts = rng.uniform(-0.5, 0.5, (n, 3)) * size
+  face = rng.integers(0, 3, n)  # x side, y side, top
+  pts[face == 0, 0] = np.sign(pts[face == 0, 0]) * size[0] / 2
+  pts[face == 1, 1] = np.sign(pts[face == 1, 1]) * size[1] / 2
+  pts[face == 2, 2] = size[2] / 2
+  return pts + [centre[0], centre[1], size[2] / 2 + 0.3]
+
+
+def scene(rng, motions):
+  """A wall, a parked box and two cars; `motions` per object: (rotation, translation) about the
+  object's centre. Returns the points and the object index of each."""
+  parts, index = [], []
+  wall = np.c_[rng.uniform(-20, 20, 3000), np.full(3000, 8.0), rng.uniform(0, 4, 3000)]
+  objs = [wall, box_surface(rng, (5, 4, 0), np.array([4.5, 1.8, 1.5]), 800),
+          box_surface(rng, (-6, -2, 0), np.array([4.5, 1.8, 1.5]), 800),
+          box_surface(rng, (8, -4, 0), np.array([4.2, 1.8, 1.4]), 800)]
+  for k, (pts, (r, t)) in enumerate(zip(objs, motions)):
+    centre = pts.mean(0)
+    parts.append((pts - centre) @ r.T + centre + t)
+    index.append(np.full(len(pts), k))
+  return np.concatenate(parts), np.concatenate(index)
+
+
+def test_two_cars_moving_differently_get_two_motions():
+  rng = np.random.default_rng(0)
+  still = (np.eye(3), np.zeros(3))
+  pc1, obj = scene(rng, [still] * 4)
+  car_a, car_b = (yaw(2.0), np.array([1.6, 0.1, 0.0])), (yaw(-3.0), np.array([-0.9, 0.6, 0.0]))
+  pc2, _ = scene(np.random.default_rng(1), [still, still, car_a, car_b])  # sampled anew
+  ego_motion = rigid.Motion(yaw(1.0), np.array([0.8, 0.05, 0.0]))
+  pc2 = ego_motion.apply(pc2)  # frame 2 of a sensor that moved too
+  flow, found = objects.object_flow(pc1, pc2, np.zeros(len(pc1), bool), np.zeros(len(pc2), bool),
+                                    ego_motion)
+  for k, motion in ((2, car_a), (3, car_b)):
+    sel = obj == k
+    centre = pc1[sel].mean(0)
+    truth = ego_motion.apply((pc1[sel] - centre) @ motion[0].T + centre + motion[1]) - pc1[sel]
+    assert np.linalg.norm(flow[sel] - truth, axis=1).mean() < 0.05, k
+  for k in (0, 1):  # the wall and the parked box: the ego-motion
+    sel = obj == k
+    np.testing.assert_allclose(flow[sel], ego_motion.flow(pc1[sel]), atol=1e-4)
+  assert len(found.moved) == 2
+  shifts = [m[1] for m in found.moved]
+  assert np.linalg.norm(shifts[0] - shifts[1]) > 1.0  # two different motions

@@ -1,0 +1,84 @@
+"""The raw 360-degree sweep generator (jaxflow.data.synthetic_sweep)."""
+
+import time
+
+import numpy as np
+import pytest
+
+from jaxflow import rigid
+from jaxflow.data import open_dataset
+from jaxflow.data import synthetic_sweep as ss
+from jaxflow.errors import DataError
+
+
+@pytest.fixture(scope="module")
+def sweep():
+  return ss.sweep_pair("val", 0)
+
+
+def test_a_full_sweep_is_raw_z_up_and_fast():
+  start = time.perf_counter()
+  s = ss.sweep_pair("test", 1)
+  assert time.perf_counter() - start < 3.0  # ~0.1 s idle
+  assert 60_000 < len(s.pc1) < 150_000 and 60_000 < len(s.pc2) < 150_000
+  r = np.linalg.norm(s.pc1, axis=1)
+  assert r.max() <= ss.MAX_RANGE + 0.1 and r.max() > 50
+  azimuth = np.arctan2(s.pc1[:, 1], s.pc1[:, 0])
+  assert (np.histogram(azimuth, 12, (-np.pi, np.pi))[0] > 100).all()  # 360 degrees
+  ground_z = s.pc1[s.ground, 2]  # z up, the sensor ~1.7-2.1 m above the road
+  assert -2.6 < np.median(ground_z) < -1.5
+  assert 0.2 < s.ground.mean() < 0.8  # the ground is kept
+
+
+def test_flows_are_rigid_per_object_and_the_ego_motion_is_the_backgrounds(sweep):
+  s = sweep
+  ego = s.pc1.astype(np.float64) @ s.ego_rotation.T + s.ego_translation - s.pc1
+  np.testing.assert_allclose(s.ego_flow, ego, atol=2e-3)  # float32 coordinates at 100 m
+  background = s.category == 0
+  np.testing.assert_allclose(s.flow[background], s.ego_flow[background], atol=1e-6)
+  assert np.linalg.det(s.ego_rotation) == pytest.approx(1.0)
+  for inst in np.unique(s.instance[s.instance > 0]):
+    sel = s.instance == inst
+    if sel.sum() < 10:
+      continue
+    fit = rigid.kabsch(s.pc1[sel], s.pc1[sel] + s.flow[sel])  # each object moves rigidly
+    np.testing.assert_allclose(fit.flow(s.pc1[sel]), s.flow[sel], atol=2e-3)
+  assert set(np.unique(s.category)) <= {0, ss.BICYCLIST, ss.PEDESTRIAN, ss.REGULAR_VEHICLE}
+
+
+def test_the_two_sweeps_are_sampled_independently(sweep):
+  from scipy.spatial import cKDTree
+  s = sweep
+  d, _ = cKDTree(s.pc2).query(s.pc1 + s.flow)
+  assert np.mean(d < 1e-3) < 0.01  # no shared rows: hardly any pc2 point is a moved pc1 point
+  assert np.median(d) < 0.5  # but pc1 + flow lies on what pc2 sees
+
+
+def test_splits_are_disjoint_and_pairs_deterministic():
+  tiny = ss.Options(scale=0.05)
+  a, b = ss.sweep_pair("val", 2, tiny), ss.sweep_pair("val", 2, tiny)
+  np.testing.assert_array_equal(a.pc1, b.pc1)
+  c = ss.sweep_pair("test", 2, tiny)
+  assert a.pc1.shape != c.pc1.shape or not np.allclose(a.pc1, c.pc1)
+  assert set(range(ss.SEED_BASE["val"], ss.SEED_BASE["val"] + 10**6)).isdisjoint(
+    {ss.SEED_BASE["test"]})
+
+
+def test_ego_speeds_span_parked_to_fast_and_scenes_hold_movers():
+  speeds, dynamic = [], 0
+  for i in range(12):
+    s = ss.sweep_pair("val", i, ss.Options(scale=0.03))
+    speeds.append(np.linalg.norm(s.ego_translation))
+    dynamic += (np.linalg.norm(s.flow - s.ego_flow, axis=1) >= 0.05).sum()
+  assert min(speeds) < 1.0 and max(speeds) > 1.5 and max(speeds) <= 3.0
+  assert dynamic > 0
+  parked = ss.sweep_pair("val", 0, ss.Options(speed=(0, 0), scale=0.03))
+  assert np.abs(parked.ego_flow).max() < 1e-6
+
+
+def test_registered_as_a_dataset_with_three_way_labels():
+  ds = open_dataset("synthetic_sweep:2", "test")
+  pair = ds[0]
+  assert pair.has_labels and pair.mask.sum() > 0 and not pair.mask.all()
+  with pytest.raises(DataError, match="split"):
+    open_dataset("synthetic_sweep:2", "train")
