@@ -61,6 +61,7 @@ def main(argv):
   parser.add_argument("--max-points", type=int, default=predict.DEFAULT_MAX_POINTS,
                       help="larger clouds are sampled to this size (0: whole clouds)")
   parser.add_argument("--seed", type=int, default=0, help="sampling and initial weights")
+  parser.add_argument("--columns", type=int, default=None, help=".bin: float32 values a point (4)")
   parser.error = cli.fail  # one line and exit code 2, as the other tools
   args = parser.parse_args(argv)
   if args.max_points < 0:
@@ -68,8 +69,8 @@ def main(argv):
   out = pathlib.Path(args.out)
   export.check_flow_path(out)
   chosen = settings(args.objective, args.steps, args.seed)
-  pc1, note1 = predict.read_cloud(args.pc1)
-  pc2, note2 = predict.read_cloud(args.pc2)
+  pc1, note1 = predict.read_cloud(args.pc1, args.columns)
+  pc2, note2 = predict.read_cloud(args.pc2, args.columns)
   runner = predict.load_predictor(method="nsfp")
   runner = dataclasses.replace(runner, method_settings=chosen)
   flow = runner(pc1, pc2, max_points=args.max_points, seed=args.seed,

@@ -252,11 +252,11 @@ def predict_flow(pc1_Nx3, pc2_Mx3, checkpoint=None, num_iters: int = DEFAULT_ITE
                    max_range=max_range)
 
 
-def read_cloud(path) -> tuple[np.ndarray, str | None]:
-  """read_points(path) and a note when non-finite rows were dropped (None otherwise)."""
+def read_cloud(path, columns: int | None = None) -> tuple[np.ndarray, str | None]:
+  """read_points(path, columns) and a note when non-finite rows were dropped (None otherwise)."""
   with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
-    points = read_points(path)
+    points = read_points(path, columns)
   notes = [str(w.message) for w in caught if "non-finite" in str(w.message)]
   for w in caught:
     if "non-finite" not in str(w.message):
@@ -294,6 +294,8 @@ def _define_flags():
                     "of --corr-chunk rows (memory linear in the points).")
   flags.DEFINE_integer("corr-chunk", DEFAULT_CORR_CHUNK, "Rows per chunk with --full.")
   flags.DEFINE_integer("seed", 0, "Seed of the sampling of larger clouds.")
+  flags.DEFINE_integer("columns", None, ".bin files: float32 values a point (default 4, KITTI's x y "
+                       "z intensity; 5: nuScenes' x y z intensity ring; 3: x y z).")
   flags.DEFINE_string("render", None, "Also save the Fig. 2 view (pc1 blue, pc2 red, pc1 + flow "
                       "green) as this PNG.")
   flags.DEFINE_bool("lidar", False, "Raw sweeps: remove the ground (plane fit along --up) and the "
@@ -338,8 +340,8 @@ def main(argv):
   if FLAGS.out:
     export.check_flow_path(out)
 
-  pc1, note1 = read_cloud(pc1_path)
-  pc2, note2 = read_cloud(pc2_path)
+  pc1, note1 = read_cloud(pc1_path, FLAGS.columns)
+  pc2, note2 = read_cloud(pc2_path, FLAGS.columns)
   optimise = test_time.settings_from_config(config.eval)
   predictor = load_predictor(FLAGS.checkpoint, config, model_fields, FLAGS.method, FLAGS.steps)
   kwargs = dict(num_iters=num_iters, max_points=max_points, full=FLAGS.full,
