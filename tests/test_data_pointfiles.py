@@ -216,7 +216,8 @@ def test_bin_read_with_the_wrong_columns_is_refused_naming_the_right_ones(sweeps
 def test_bin_whose_size_fits_no_row_names_the_layouts_that_do(tmp_path, sweeps):
   xyz = sweeps["xyz.bin"][1][:1001]  # 3003 values: rows of 3 only
   (tmp_path / "odd.bin").write_bytes(xyz.astype("<f4").tobytes())
-  with pytest.raises(DataError, match=r"12012 bytes\) do not divide into rows of 4; try --columns 3"):
+  with pytest.raises(
+      DataError, match=r"12012 bytes\) do not divide into rows of 4; try --columns 3"):
     read_points(tmp_path / "odd.bin")
   np.testing.assert_array_equal(read_points(tmp_path / "odd.bin", columns=3), xyz)
 

@@ -25,7 +25,7 @@ from jaxflow.errors import ConfigError, DataError
 MIN_POINTS = 3  # fewer points than this cannot describe a surface: the file is treated as broken.
 BIN_COLUMNS = 4  # KITTI velodyne's layout, the default of a .bin file
 BIN_LAYOUTS = {3: "x y z", 4: "x y z intensity, KITTI's", 5: "x y z intensity ring, nuScenes'"}
-MAX_COORDINATE_M = 1e4  # a sweep's points lie within 10 km; beyond that a float32 reading is garbage
+MAX_COORDINATE_M = 1e4  # a sweep's points lie within 10 km; beyond, a float32 reading is garbage
 TOLERATED_FRACTION = 1e-3  # of implausible values, before a layout is refused
 
 _PLY_TYPES = {
@@ -95,8 +95,8 @@ def read_points(path, columns: int | None = None) -> np.ndarray:
   say their layout themselves and ignore it.
   """
   path = pathlib.Path(path)
-  if columns is not None and (isinstance(columns, bool) or not isinstance(columns, (int, np.integer))
-                              or columns < 3):
+  integer = isinstance(columns, (int, np.integer)) and not isinstance(columns, bool)
+  if columns is not None and (not integer or columns < 3):
     raise ConfigError(f"--columns must be an integer >= 3 (x y z first), got {columns!r}")
   _check_file(path)
   suffix = path.suffix.lower()
@@ -132,9 +132,10 @@ def _layout(columns: int) -> str:
 
 
 def bin_layout_problem(values, columns: int) -> str | None:
-  """Why the flat float32 `values` do not read as `columns`-value points of a sweep (None: they do)."""
+  """Why the flat float32 `values` do not read as `columns`-value points of a sweep (None: do)."""
   if values.size % columns:
-    return f"its {values.size} values ({4 * values.size} bytes) do not divide into rows of {columns}"
+    return (f"its {values.size} values ({4 * values.size} bytes) do not divide into rows of "
+            f"{columns}")
   table = values.reshape(-1, columns).astype(np.float64)
   xyz = table[:, :3][np.isfinite(table[:, :3]).all(axis=1)]
   far = np.mean(np.abs(xyz) > MAX_COORDINATE_M) if xyz.size else 0.0
@@ -149,8 +150,8 @@ def bin_layout_problem(values, columns: int) -> str | None:
     negative = np.mean(table < 0, axis=0)
     fits = [c for c in (4, 5) if bin_layout_problem(values, c) is None]
     if fits and negative.max() > TOLERATED_FRACTION:
-      return (f"read as {fits[0]} columns its column 4 is a non-negative intensity, while read as 3 "
-              "every column would mix coordinates and intensities")
+      return (f"read as {fits[0]} columns its column 4 is a non-negative intensity, while read "
+              "as 3 every column would mix coordinates and intensities")
   return None
 
 
