@@ -203,7 +203,7 @@ def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoi
     [sys.executable, "evaluate.py", "--config", "configs/default.py:smoke", "--checkpoint",
      str(checkpoint), "--dataset", f"opensf:{root}", "--split", "val", "--json", str(out),
      "--save-flows", str(flows), "--config.eval.num_points=0", "--config.eval.batch_size=1"],
-    cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
   assert proc.returncode == 0, proc.stderr[-3000:]
   assert "three-way" in proc.stdout and "EPE FD" in proc.stdout
   results = json.loads(out.read_text())

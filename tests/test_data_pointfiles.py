@@ -254,7 +254,7 @@ def test_predict_refuses_a_three_column_bin_and_takes_columns(sweeps):
   for extra, read_as in (([], 4), (["--columns", "5"], 5)):
     done = subprocess.run([sys.executable, "-m", "jaxflow.predict", str(path), str(path), "--out",
                            str(path.with_suffix(".npy")), *extra], capture_output=True, text=True,
-                          timeout=300)
+                          timeout=1200)
     assert done.returncode == 2, done.stderr
     assert f"{path}: read as {read_as} float32 values" in done.stderr, done.stderr
     assert "try --columns 3 (x y z)" in done.stderr and "Traceback" not in done.stderr

@@ -28,7 +28,7 @@ CACHE = os.environ.setdefault(
 STEPS, EVERY = 12, 4
 FLAGS = ["--config", "configs/default.py:smoke", f"--config.train.num_steps={STEPS}",
          f"--config.train.checkpoint_every={EVERY}", f"--config.train.log_every={EVERY}"]
-TIMEOUT = 300
+TIMEOUT = 1200
 
 
 def free_port() -> int:

@@ -55,12 +55,12 @@ def fresh(tmp_path_factory):
     shutil.copytree(REPO / name, src / name,
                     ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info"))
   venv = root / "venv"
-  subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
+  subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=1200)
   python = venv / "bin" / "python"
   proc = subprocess.run(
     [python, "-m", "pip", "install", "-q", "--timeout", "30", "--retries", "2",
      "-c", _constraints(root / "constraints.txt"), str(src)],
-    capture_output=True, text=True, env=_env(), timeout=600)
+    capture_output=True, text=True, env=_env(), timeout=1200)
   if proc.returncode and any(s in proc.stdout + proc.stderr for s in OFFLINE):
     pytest.skip("the package index is unreachable: the declared dependencies are not checked")
   assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -74,7 +74,7 @@ def _run(argv, cwd):
                           stderr=subprocess.PIPE, text=True)
 
 
-def _wait(proc, timeout=600, returncode=0):
+def _wait(proc, timeout=1200, returncode=0):
   out, err = proc.communicate(timeout=timeout)
   assert proc.returncode == returncode, f"{proc.args}\n{out[-2000:]}\n{err[-3000:]}"
   return out, err

@@ -163,7 +163,7 @@ def runs(tmp_path_factory):
          "JAX_PLATFORMS": "cpu"}
   procs = {k: subprocess.Popen(list(map(str, v)), cwd=ROOT, env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True) for k, v in cases.items()}
-  return d, {k: (p.wait(timeout=300), *p.communicate()) for k, p in procs.items()}
+  return d, {k: (p.wait(timeout=1200), *p.communicate()) for k, p in procs.items()}
 
 
 def test_methods_run_from_both_command_lines(runs):

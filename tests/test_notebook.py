@@ -23,7 +23,7 @@ def test_quickstart_runs(tmp_path, monkeypatch):
   monkeypatch.setenv("JAXFLOW_NOTEBOOK_OUT", str(tmp_path))
   monkeypatch.setenv("JAX_PLATFORMS", "cpu")
   nb = nbformat.read(NOTEBOOK, as_version=4)
-  client = NotebookClient(nb, timeout=180, kernel_name="python3",
+  client = NotebookClient(nb, timeout=1200, kernel_name="python3",
                           resources={"metadata": {"path": str(ROOT)}})
   client.execute()
   text = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)

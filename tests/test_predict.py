@@ -137,7 +137,7 @@ def runs(files, workdir):
                                text=True) for k, v in cases.items()}
   out = {}
   for k, p in procs.items():
-    stdout, stderr = p.communicate(timeout=240)
+    stdout, stderr = p.communicate(timeout=1200)
     out[k] = (p.returncode, stdout, stderr)
   return out
 

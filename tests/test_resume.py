@@ -39,7 +39,7 @@ def env():
 
 def run(workdir):
   proc = subprocess.run(train_command(workdir), cwd=REPO, env=env(), capture_output=True,
-                        text=True, timeout=240)
+                        text=True, timeout=1200)
   assert proc.returncode == 0, proc.stderr[-3000:]
   return proc
 
@@ -49,11 +49,11 @@ def start_and_signal(workdir, signum):
   proc = subprocess.Popen(train_command(workdir), cwd=REPO, env=env(), stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True)
   first = workdir / "checkpoints" / str(EVERY)
-  deadline = time.monotonic() + 240
+  deadline = time.monotonic() + 1200
   while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
     time.sleep(0.01)
   proc.send_signal(signum)
-  out, err = proc.communicate(timeout=120)
+  out, err = proc.communicate(timeout=1200)
   assert not (workdir / "checkpoints" / str(TOTAL_STEPS)).exists(), "the run ended before the signal"
   return proc.returncode, err
 
