@@ -202,6 +202,7 @@ def imported_pvraft(ref):
   return model, import_into(jax.tree_util.tree_map(np.asarray, fresh), imported)
 
 
+@pytest.mark.slow
 def test_pvraft_reproduces_official_outputs_given_its_graphs(pvraft_reference):
   ref = pvraft_reference
   model, params = imported_pvraft(ref)
@@ -239,6 +240,7 @@ def test_import_rejects_foreign_weights():
     convert_state_dict({"backbone.layer1.weight": np.zeros((3, 3))})
 
 
+@pytest.mark.slow
 def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_reference, tmp_path):
   import subprocess
   import sys

@@ -17,6 +17,7 @@ def test_notebook_is_committed_without_outputs():
   assert code and all(not c.outputs and c.execution_count is None for c in code)
 
 
+@pytest.mark.slow
 def test_quickstart_runs(tmp_path, monkeypatch):
   pytest.importorskip("ipykernel")
   monkeypatch.setenv("JAXFLOW_NOTEBOOK_SMALL", "1")

@@ -297,6 +297,7 @@ DATA_PARALLEL = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_data_parallel_over_two_devices_matches_one_device(tmp_path):
   """One step with the batch split over 2 (forced host) devices gives the 1-device step."""
   config = smoke()
