@@ -166,6 +166,7 @@ def runs(tmp_path_factory):
   return d, {k: (p.wait(timeout=1200), *p.communicate()) for k, p in procs.items()}
 
 
+@pytest.mark.slow
 def test_methods_run_from_both_command_lines(runs):
   d, out = runs
   for case in ("eval_nsfp", "predict_optimise", "nsfp", "nsfp_grid"):
@@ -188,6 +189,7 @@ def test_methods_run_from_both_command_lines(runs):
   assert "(exact objective)" in out["nsfp"][2] and "(grid objective)" in out["nsfp_grid"][2]
 
 
+@pytest.mark.slow
 def test_nsfp_command_errors_are_one_line(runs):
   _, out = runs
   for case, words in (("nsfp_bad", ["bad.npy", "expected N x 3"]),
