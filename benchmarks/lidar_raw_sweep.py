@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from jaxflow import ground, predict, rigid
+from jaxflow import ground, inference, rigid
 from jaxflow.data.readers import kitti_keep
 
 FRAME = pathlib.Path(__file__).resolve().parents[2] / "shared/data/KITTI_processed_occ_final/000002"
@@ -28,7 +28,7 @@ def main(frame=FRAME, seeds=3):
   raw1, raw2 = np.load(frame / "pc1.npy"), np.load(frame / "pc2.npy")
   gt = raw2 - raw1
   loader = kitti_keep(raw1, raw2)
-  predictor = predict.load_predictor()
+  predictor = inference.load_predictor(method="network")
   epe = lambda f, m: float(np.linalg.norm(f[m] - gt[m], axis=1).mean())
   def cut(s):
     flow = np.zeros_like(gt)
@@ -49,7 +49,7 @@ def main(frame=FRAME, seeds=3):
   start = time.perf_counter()
   keep1, ground1, plane = ground.lidar_keep(raw1, "y")
   t_ground = time.perf_counter() - start
-  lidar, info = predictor.lidar(raw1, raw2, up="y")
+  lidar = predictor.predict(raw1, raw2, lidar=True, up="y").flow
   start = time.perf_counter()
   rigid.fit_static_motion(raw1[keep1], lidar[keep1])
   t_rigid = time.perf_counter() - start

@@ -79,8 +79,8 @@ def main():
   }
   network = None
   if args.network_pairs:
-    from jaxflow import predict  # pylint: disable=import-outside-toplevel
-    predictor = predict.load_predictor(method="network")
+    from jaxflow import inference  # pylint: disable=import-outside-toplevel
+    predictor = inference.load_predictor(method="network")
     network = lambda a, b: predictor(a, b)
     methods["ego + objects, network start"] = lambda s: sweep.raw_sweep_flow(
       network, s.pc1, s.pc2, use_network=True)[0]

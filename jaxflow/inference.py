@@ -272,11 +272,11 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
   return prediction.flow
 
 
-def read_cloud(path) -> tuple[np.ndarray, str | None]:
-  """read_points(path) and a note when non-finite rows were dropped (None otherwise)."""
+def read_cloud(path, columns: int | None = None) -> tuple[np.ndarray, str | None]:
+  """read_points(path, columns) and a note when non-finite rows were dropped (None otherwise)."""
   with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
-    points = read_points(path)
+    points = read_points(path, columns)
   notes = [str(w.message) for w in caught if "non-finite" in str(w.message)]
   for w in caught:
     if "non-finite" not in str(w.message):

@@ -70,6 +70,8 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   flags.DEFINE_string("out", None, "Write the flow here, one row per point of PC1: .npy "
                       "(float32) or text, .txt (x y z per line) or .csv.")
   cli.define_run_flags(default_method)
+  flags.DEFINE_integer("columns", None, ".bin files: float32 values a point (default 4, KITTI's x y "
+                       "z intensity; 5: nuScenes' x y z intensity ring; 3: x y z).")
   flags.DEFINE_string("render", None, "Also draw the flow of this pair: FILE.png a top view in --up "
                       "(speed relative to the ego-motion), FILE.html a 3D viewer (extra 'viewer').")
   flags.DEFINE_bool("lidar", False, "Raw sweeps (jaxflow.sweep): the ground (local planes along "
@@ -113,8 +115,8 @@ def main(argv):
   if FLAGS.out:
     export.check_flow_path(out)
 
-  pc1, note1 = inference.read_cloud(pc1_path)
-  pc2, note2 = inference.read_cloud(pc2_path)
+  pc1, note1 = inference.read_cloud(pc1_path, FLAGS.columns)
+  pc2, note2 = inference.read_cloud(pc2_path, FLAGS.columns)
   predictor = inference.load_predictor(FLAGS.checkpoint, config, model_fields, FLAGS.method,
                                        FLAGS.steps, FLAGS.objective)
   max_points, num_iters = config.eval.num_points, config.eval.num_iters

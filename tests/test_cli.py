@@ -22,7 +22,7 @@ def python(*args, script=None):
   env = dict(os.environ, JAX_PLATFORMS="cpu",
              PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
   argv = [sys.executable, "-c", script] if script else [sys.executable, *args]
-  return subprocess.run(argv, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+  return subprocess.run(argv, cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
 
 
 def assert_one_line_error(proc, *needles):

@@ -2,12 +2,19 @@
 configs), PV-RAFT's published recipe is its own variant, and the CPU main job derives from the paper
 base with its small overrides only."""
 
+import importlib
+import pathlib
+import re
+
+import numpy as np
 import pytest
 
 from jaxflow.configs import ablation, default, ft3d_stage1, ft3d_stage2, kitti_eval, paper, pvraft
 from jaxflow.data.readers import ft3d_split_positions
 from jaxflow.model import build_model
 from jaxflow.summary import parameter_counts
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 # Paper section 4.1 (and Table 1 for the data): field -> value.
 PAPER = {
@@ -121,9 +128,45 @@ def test_every_paper_config_builds_its_model():
   for name, (get, _) in PAPER_CONFIGS.items():
     models.setdefault(str(dict(get().model)), (name, get().model))
   assert len(models) == 5  # full, gcl, gcl_rc, PV-RAFT with and without its refinement
-  for name, model in models.values():
+  for _, model in models.values():
     build_model(model, inference=True)
-    assert sum(parameter_counts(model).values()) > 0, name
+
+
+def documented_parameter_counts() -> dict:
+  """docs/network.md's table: {"configs/X.py[:arg]": (total, stage 1 or None)}."""
+  text = (ROOT / "docs" / "network.md").read_text()
+  row = r"^\| `(configs/\w+\.py(?::\w+)?)` \|[^|]*\| ([\d,]+)(?: \(([\d,]+) stage 1\))? \|$"
+  rows = re.findall(row, text, re.M)
+  number = lambda s: int(s.replace(",", "")) if s else None
+  return {name: (number(total), number(stage1)) for name, total, stage1 in rows}
+
+
+def test_parameter_counts_are_the_documented_ones():
+  documented = documented_parameter_counts()
+  assert set(documented) == {"configs/pvraft.py", "configs/pvraft.py:refine",
+                             "configs/ablation.py:gcl", "configs/ablation.py:gcl_rc",
+                             "configs/ablation.py:gcl_rc_sgfi", "configs/default.py"}, documented
+  # PV-RAFT's stage-1 network has 192,034 parameters: the official PyTorch model's state_dict
+  # (tests/data/pvraft_seed5_n2048_it12.npz) sums to that too (the test below).
+  assert documented["configs/pvraft.py"] == (192_034, None)
+  for name, (total, stage1) in documented.items():
+    path, _, argument = name.partition(":")
+    module = importlib.import_module(f"jaxflow.configs.{path[len('configs/'):-len('.py')]}")
+    config = module.get_config(argument) if argument else module.get_config()
+    counts = parameter_counts(config.model)
+    assert sum(counts.values()) == total, (name, sum(counts.values()), total)
+    if stage1 is not None:
+      assert sum(v for k, v in counts.items() if k != "refine") == stage1, (name, counts)
+
+
+def test_pvraft_counts_are_the_official_ones():
+  """The official network's own tensors (tests/data, PyTorch's state_dicts) count 192,034 for the
+  stage-1 network and 47,187 for its refinement: PV-RAFT's counts, independent of jaxflow's."""
+  with np.load(ROOT / "tests" / "data" / "pvraft_seed5_n2048_it12.npz") as data:
+    stage1, refine = (sum(data[k].size for k in data.files if k.startswith(p))
+                      for p in ("rsf/", "refine/"))
+  assert stage1 == 192_034 == sum(parameter_counts(pvraft.get_config().model).values())
+  assert stage1 + refine == sum(parameter_counts(pvraft.get_config("refine").model).values())
 
 
 def test_config_arguments_are_checked():

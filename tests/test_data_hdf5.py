@@ -113,7 +113,7 @@ def test_convert_bad_arguments_exit_2_with_one_line(tmp_path, capsys):
 def test_convert_command_line_end_to_end(tmp_path):
   out = tmp_path / "s.h5"
   run = lambda *args: subprocess.run([sys.executable, "-m", "jaxflow.data.convert", *args], cwd=REPO,
-                                     capture_output=True, text=True, timeout=120)
+                                     capture_output=True, text=True, timeout=1200)
   done = run("--dataset", "synthetic_lidar:2", "--split", "val", "--out", str(out), "--limit", "1")
   assert done.returncode == 0, done.stderr
   assert "1/1" in done.stderr  # the tqdm bar

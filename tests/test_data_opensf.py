@@ -203,13 +203,12 @@ def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoi
     [sys.executable, "evaluate.py", "--config", "configs/default.py:smoke", "--checkpoint",
      str(checkpoint), "--dataset", f"opensf:{root}", "--split", "val", "--json", str(out),
      "--save_flows", str(flows), "--config.eval.num_points=0", "--config.eval.batch_size=1"],
-    cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    cwd=REPO, env=env, capture_output=True, text=True, timeout=1200)
   assert proc.returncode == 0, proc.stderr[-3000:]
   assert "av2 official" in proc.stdout and "EPE 3-Way Average" in proc.stdout
   assert "OpenSceneFlow local" not in proc.stdout  # the local reading: only without av2 labels
   results = json.loads(out.read_text())
-  assert results["three_way_local"]["pairs"] == 3 and results["three_way_local"]["mean"] > 0
-  assert results["av2"]["pairs"] == 3 and results["av2"]["EPE 3-Way Average"] > 0
+  assert results["three_way_local"]["pairs"] == 3 and results["av2"]["pairs"] == 3
   ds = open_dataset(f"opensf:{root}", "val")
   assert sorted(p.name for p in flows.iterdir()) == sorted(
     export.flow_stem(p.name) + ".npy" for p in ds)
@@ -219,6 +218,16 @@ def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoi
   epe = np.mean([np.linalg.norm(np.load(flows / (export.flow_stem(p.name) + ".npy"))[p.mask]
                                 - p.flow[p.mask], axis=1).mean() for p in ds])
   assert results["epe"] == pytest.approx(epe, rel=1e-4)
+  # The three-way mean of the saved flows by the challenge's definition, a plain loop: classes
+  # foreground-dynamic (|gt - rigid| >= 5 cm), foreground-static and background-static, the mean
+  # of the classes a pair has, averaged over the pairs.
+  means = []
+  for p in ds:
+    err = np.linalg.norm(np.load(flows / (export.flow_stem(p.name) + ".npy")) - p.flow, axis=1)
+    dynamic = np.linalg.norm(p.flow - p.rigid_flow, axis=1) >= 0.05
+    classes = [p.foreground & dynamic, p.foreground & ~dynamic, ~p.foreground & ~dynamic]
+    means.append(np.mean([err[c & p.mask].mean() for c in classes if (c & p.mask).any()]))
+  assert results["three_way_local"]["mean"] == pytest.approx(np.mean(means), rel=1e-4)
 
 
 # The two layouts of OpenSceneFlow's extract_av2.py (tests/av2_fixture.py, from the documented

@@ -28,7 +28,7 @@ CACHE = os.environ.setdefault(
 STEPS, EVERY = 12, 4
 FLAGS = ["--config", "configs/default.py:smoke", f"--config.train.num_steps={STEPS}",
          f"--config.train.checkpoint_every={EVERY}", f"--config.train.log_every={EVERY}"]
-TIMEOUT = 300
+TIMEOUT = 1200
 
 
 def free_port() -> int:
@@ -87,6 +87,7 @@ def runs(tmp_path_factory):
   return root / "two", root / "one"
 
 
+@pytest.mark.slow
 def test_two_processes_reach_the_heldout_epe_of_one_process_with_two_devices(runs):
   two, one = runs
   epe = {w: json.loads((w / "eval.json").read_text())["model"]["epe"] for w in (two, one)}
@@ -97,6 +98,7 @@ def test_two_processes_reach_the_heldout_epe_of_one_process_with_two_devices(run
   assert json.loads((two / "config.json").read_text())["train"]["num_steps"] == STEPS
 
 
+@pytest.mark.slow
 def test_a_two_process_checkpoint_evaluates_in_one_process_and_in_two(runs, tmp_path):
   two, _ = runs
   config = default.get_config("smoke")
@@ -115,6 +117,7 @@ def test_a_two_process_checkpoint_evaluates_in_one_process_and_in_two(runs, tmp_
   assert evaluation.evaluate_checkpoint(two, config)["epe"] == pytest.approx(stored["epe"], rel=1e-5)
 
 
+@pytest.mark.slow
 def test_sigkill_of_one_process_then_a_restart_of_both_resumes(runs, tmp_path):
   workdir = tmp_path / "killed"
   procs = start_two(workdir, "--config.eval.dataset=")

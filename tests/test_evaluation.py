@@ -41,7 +41,7 @@ def evaluate_cli(*args):
   env = dict(os.environ, JAX_PLATFORMS="cpu",
              PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
   return subprocess.run([sys.executable, "evaluate.py", *map(str, args)], cwd=REPO, env=env,
-                        capture_output=True, text=True, timeout=240)
+                        capture_output=True, text=True, timeout=1200)
 
 
 def test_same_command_twice_gives_identical_numbers(workdir, tmp_path):
@@ -191,7 +191,7 @@ def test_cli_silences_the_reports_of_abandoned_reads():
           "  raise cli.ConfigError('bad checkpoint')\n"
           "cli.guard(main)\n")
   proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True,
-                        timeout=120)
+                        timeout=1200)
   assert proc.returncode == 2 and proc.stderr.strip().splitlines() == ["error: bad checkpoint"]
 
 

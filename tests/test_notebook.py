@@ -17,13 +17,14 @@ def test_notebook_is_committed_without_outputs():
   assert code and all(not c.outputs and c.execution_count is None for c in code)
 
 
+@pytest.mark.slow
 def test_quickstart_runs(tmp_path, monkeypatch):
   pytest.importorskip("ipykernel")
   monkeypatch.setenv("JAXFLOW_NOTEBOOK_SMALL", "1")
   monkeypatch.setenv("JAXFLOW_NOTEBOOK_OUT", str(tmp_path))
   monkeypatch.setenv("JAX_PLATFORMS", "cpu")
   nb = nbformat.read(NOTEBOOK, as_version=4)
-  client = NotebookClient(nb, timeout=180, kernel_name="python3",
+  client = NotebookClient(nb, timeout=1200, kernel_name="python3",
                           resources={"metadata": {"path": str(ROOT)}})
   client.execute()
   text = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)

@@ -144,11 +144,12 @@ def runs(files, workdir):
                                text=True) for k, v in cases.items()}
   out = {}
   for k, p in procs.items():
-    stdout, stderr = p.communicate(timeout=240)
+    stdout, stderr = p.communicate(timeout=1200)
     out[k] = (p.returncode, stdout, stderr)
   return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case, words", [
   ("missing", ["nope.npy", "missing file"]),
   ("corrupt", ["corrupt.npy", "corrupt"]),
@@ -173,6 +174,7 @@ def test_broken_input_is_one_line_and_exit_2(runs, case, words):
     assert w in lines[0]
 
 
+@pytest.mark.slow
 def test_round_trip_npy_and_ply(runs, files, predictor, pair):
   for case in ("npy", "ply"):
     assert runs[case][0] == 0, runs[case][2]
@@ -188,6 +190,7 @@ def test_round_trip_npy_and_ply(runs, files, predictor, pair):
   assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 1000
 
 
+@pytest.mark.slow
 def test_cli_sets_the_test_time_candidates(runs, files, predictor, pair):
   rc, _, stderr = runs["candidates"]
   assert rc == 0, stderr
@@ -199,6 +202,7 @@ def test_cli_sets_the_test_time_candidates(runs, files, predictor, pair):
   assert not np.allclose(flow, np.load(files / "flow_npy.npy"), atol=1e-3)
 
 
+@pytest.mark.slow
 def test_larger_cloud_gives_one_row_per_input_point(runs, files):
   rc, _, stderr = runs["config_smoke"]  # config.eval.num_points = 64 < 300 points: sampled
   assert rc == 0, stderr
@@ -208,6 +212,7 @@ def test_larger_cloud_gives_one_row_per_input_point(runs, files):
   assert "sampled to 100" in stderr
 
 
+@pytest.mark.slow
 def test_dropped_rows_are_reported_and_output_aligns(runs, files):
   rc, _, stderr = runs["nan"]
   assert rc == 0, stderr
@@ -262,6 +267,7 @@ def test_default_checkpoint_is_the_shipped_one(pair):
   assert flow.shape == (64, 3) and np.isfinite(flow).all()
 
 
+@pytest.mark.slow
 def test_lidar_gives_every_raw_point_a_flow_and_saves_it(runs, files, predictor):
   rc, _, stderr = runs["lidar"]
   assert rc == 0, stderr

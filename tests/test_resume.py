@@ -39,7 +39,7 @@ def env():
 
 def run(workdir):
   proc = subprocess.run(train_command(workdir), cwd=REPO, env=env(), capture_output=True,
-                        text=True, timeout=240)
+                        text=True, timeout=1200)
   assert proc.returncode == 0, proc.stderr[-3000:]
   return proc
 
@@ -49,11 +49,11 @@ def start_and_signal(workdir, signum):
   proc = subprocess.Popen(train_command(workdir), cwd=REPO, env=env(), stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True)
   first = workdir / "checkpoints" / str(EVERY)
-  deadline = time.monotonic() + 240
+  deadline = time.monotonic() + 1200
   while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
     time.sleep(0.01)
   proc.send_signal(signum)
-  out, err = proc.communicate(timeout=120)
+  out, err = proc.communicate(timeout=1200)
   assert not (workdir / "checkpoints" / str(TOTAL_STEPS)).exists(), "the run ended before the signal"
   return proc.returncode, err
 
@@ -83,6 +83,7 @@ def uninterrupted(uninterrupted_dir):
   return final_state(uninterrupted_dir)
 
 
+@pytest.mark.slow
 def test_sigkill_then_same_command_resumes_to_identical_parameters(uninterrupted, tmp_path):
   code, _ = start_and_signal(tmp_path, signal.SIGKILL)
   assert code == -signal.SIGKILL
@@ -91,6 +92,7 @@ def test_sigkill_then_same_command_resumes_to_identical_parameters(uninterrupted
   assert_identical(final_state(tmp_path), uninterrupted)  # params, optimiser state and step
 
 
+@pytest.mark.slow
 def test_sigterm_saves_a_checkpoint_and_resume_matches(uninterrupted, tmp_path):
   code, err = start_and_signal(tmp_path, signal.SIGTERM)
   assert code == 128 + signal.SIGTERM, err[-2000:]
@@ -110,6 +112,7 @@ def test_sigterm_saves_a_checkpoint_and_resume_matches(uninterrupted, tmp_path):
   assert steps == sorted(set(steps)) and set(range(2, TOTAL_STEPS + 1, 2)) <= set(steps)
 
 
+@pytest.mark.slow
 def test_half_written_checkpoints_are_not_loaded(uninterrupted_dir, tmp_path):
   workdir = tmp_path / "run"
   shutil.copytree(uninterrupted_dir, workdir)
@@ -144,6 +147,7 @@ def smoke_config(**overrides):
   return config
 
 
+@pytest.mark.slow
 def test_resume_with_another_recipe_is_refused_unless_asked(uninterrupted_dir, tmp_path):
   from jaxflow.errors import ConfigError
 

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from jaxflow import checkpointing, evaluation
+from jaxflow import checkpointing
 from jaxflow.configs import shipped
 from jaxflow.model_fields import ADDED_MODEL_FIELDS
 
@@ -17,10 +17,10 @@ EVAL_FIELDS = ("dataset", "split", "num_points", "num_iters", "batch_size", "see
 
 @pytest.fixture(scope="module")
 def stored():
-  if not evaluation.SHIPPED_CHECKPOINT.exists():
+  if not checkpointing.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")
-  readable = json.loads((evaluation.SHIPPED_CHECKPOINT / "config.json").read_text())
-  ckpts, _, config = checkpointing.open_checkpoint(evaluation.SHIPPED_CHECKPOINT)
+  readable = json.loads((checkpointing.SHIPPED_CHECKPOINT / "config.json").read_text())
+  ckpts, _, config = checkpointing.open_checkpoint(checkpointing.SHIPPED_CHECKPOINT)
   ckpts.close()
   return readable, checkpointing.config_to_dict(config)
 

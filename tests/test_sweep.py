@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxflow import metrics, predict, sweep
+from jaxflow import inference, metrics, sweep
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.errors import DataError
 
@@ -83,8 +83,9 @@ def test_predict_lidar_gives_the_true_ego_motion():
   """predict --lidar's Python path (the network is not run by default): every static point,
   ground and far points included, moves with the sweep's true ego-motion."""
   s = ss.sweep_pair("val", 5, SMALL)
-  predictor = predict.Predictor(None, None, None, False, method="optimise")
-  flow, info = predictor.lidar(s.pc1, s.pc2, up="z")
+  predictor = inference.Predictor(None, None, None, False, method="optimise")
+  got = predictor.predict(s.pc1, s.pc2, lidar=True, up="z")
+  flow, info = got.flow, got.sweep
   static = s.category == 0
   err = np.linalg.norm(flow - s.ego_flow, axis=1)[static]
   assert np.median(err) < 0.005 and np.percentile(err, 90) < 0.02

@@ -301,6 +301,7 @@ DATA_PARALLEL = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_data_parallel_over_two_devices_matches_one_device(tmp_path):
   """One step with the batch split over 2 (forced host) devices gives the 1-device step."""
   config = smoke()
@@ -318,7 +319,7 @@ def test_data_parallel_over_two_devices_matches_one_device(tmp_path):
              PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
   out = tmp_path / "two.npz"
   proc = subprocess.run([sys.executable, "-c", DATA_PARALLEL, str(out)], cwd=REPO, env=env,
-                        capture_output=True, text=True, timeout=300)
+                        capture_output=True, text=True, timeout=1200)
   assert proc.returncode == 0, proc.stderr[-3000:]
   two = np.load(out)
   np.testing.assert_allclose(two["loss"], metrics["loss"], rtol=1e-5)

@@ -68,6 +68,7 @@ def check_stage2(stage1_dir, stage2_dir, refine: str):
   assert np.isfinite(record["loss"]) and record["grad_norm"] > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", sorted(THROUGH_TRAIN_PY))
 def test_two_stages_through_train_py(family, tmp_path):
   stage1, stage2, flags = THROUGH_TRAIN_PY[family]
@@ -79,6 +80,7 @@ def test_two_stages_through_train_py(family, tmp_path):
                "setconv" if family == "pvraft" else "graph")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", sorted(IN_PROCESS))
 def test_stage2_in_process(family, tmp_path, capsys):
   stage1, stage2 = IN_PROCESS[family]

@@ -1,4 +1,12 @@
-"""Point files a user has: .npy, .ply, .pcd, KITTI velodyne .bin, .xyz/.txt -> N x 3 float32.
+"""Point files a user has: .npy, .ply, .pcd, LiDAR .bin, .xyz/.txt -> N x 3 float32.
+
+A `.bin` file has no header: it is float32 rows of `columns` values, x y z first. 4 (the default):
+KITTI velodyne, x y z intensity; 5: nuScenes, x y z intensity ring; 3: x y z alone. The same bytes
+read with the wrong count are garbage that looks like numbers, so the layout is checked
+(`bin_layout_problem`): the size must divide into rows, coordinates must be those of a sweep (none
+beyond 10 km), an intensity or ring column must be non-negative, and 3 columns are refused when the
+bytes read as 4 or 5 columns give a non-negative intensity. A file that fails names the `--columns`
+that fit. (A 3-column cloud with no negative coordinate at all is the case left undetectable.)
 
 Only x, y, z are read: extra columns (intensity, colour, normals) are ignored on purpose, since the
 model sees geometry only. Integer and float64 coordinates are converted to float32. Rows with a
@@ -12,9 +20,13 @@ import warnings
 
 import numpy as np
 
-from jaxflow.errors import DataError
+from jaxflow.errors import ConfigError, DataError
 
 MIN_POINTS = 3  # fewer points than this cannot describe a surface: the file is treated as broken.
+BIN_COLUMNS = 4  # KITTI velodyne's layout, the default of a .bin file
+BIN_LAYOUTS = {3: "x y z", 4: "x y z intensity, KITTI's", 5: "x y z intensity ring, nuScenes'"}
+MAX_COORDINATE_M = 1e4  # a sweep's points lie within 10 km; beyond, a float32 reading is garbage
+TOLERATED_FRACTION = 1e-3  # of implausible values, before a layout is refused
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -76,14 +88,23 @@ def load_npy(path) -> np.ndarray:
   return array
 
 
-def read_points(path) -> np.ndarray:
-  """Reads a point file into N x 3 float32 (see module docstring for formats and conventions)."""
+def read_points(path, columns: int | None = None) -> np.ndarray:
+  """Reads a point file into N x 3 float32 (see module docstring for formats and conventions).
+
+  columns: float32 values a point of a `.bin` file (None: BIN_COLUMNS, KITTI's 4); the other formats
+  say their layout themselves and ignore it.
+  """
   path = pathlib.Path(path)
+  integer = isinstance(columns, (int, np.integer)) and not isinstance(columns, bool)
+  if columns is not None and (not integer or columns < 3):
+    raise ConfigError(f"--columns must be an integer >= 3 (x y z first), got {columns!r}")
   _check_file(path)
   suffix = path.suffix.lower()
   if suffix not in _READERS:
     raise DataError(path, f"unknown point file type {suffix or '(none)'!r}; expected one of "
                     + ", ".join(sorted(_READERS)))
+  if suffix == ".bin":
+    return check_cloud(_read_bin(path, columns or BIN_COLUMNS), path, extra_columns=True)
   return check_cloud(_READERS[suffix](path), path, extra_columns=True)
 
 
@@ -105,12 +126,48 @@ def _read_npy(path):
   return array
 
 
-def _read_bin(path):
+def _layout(columns: int) -> str:
+  return f"{columns} float32 values a point" + (f" ({BIN_LAYOUTS[columns]})"
+                                               if columns in BIN_LAYOUTS else "")
+
+
+def bin_layout_problem(values, columns: int) -> str | None:
+  """Why the flat float32 `values` do not read as `columns`-value points of a sweep (None: do)."""
+  if values.size % columns:
+    return (f"its {values.size} values ({4 * values.size} bytes) do not divide into rows of "
+            f"{columns}")
+  table = values.reshape(-1, columns).astype(np.float64)
+  xyz = table[:, :3][np.isfinite(table[:, :3]).all(axis=1)]
+  far = np.mean(np.abs(xyz) > MAX_COORDINATE_M) if xyz.size else 0.0
+  if far > TOLERATED_FRACTION:
+    return f"{far:.1%} of the coordinates lie beyond {MAX_COORDINATE_M:.0f} m"
+  for j, name in ((3, "intensity"), (4, "ring")):
+    if columns == 5 or (j == 3 and columns > 3):  # the documented layouts' non-negative columns
+      negative = np.mean(table[:, j] < 0)
+      if negative > TOLERATED_FRACTION:
+        return f"column {j + 1} ({name}) is negative at {negative:.1%} of the points"
+  if columns == 3:  # a file of 4 or 5 columns read as 3 mixes its intensities into x, y and z
+    negative = np.mean(table < 0, axis=0)
+    fits = [c for c in (4, 5) if bin_layout_problem(values, c) is None]
+    if fits and negative.max() > TOLERATED_FRACTION:
+      return (f"read as {fits[0]} columns its column 4 is a non-negative intensity, while read "
+              "as 3 every column would mix coordinates and intensities")
+  return None
+
+
+def _read_bin(path, columns: int):
   raw = path.read_bytes()
-  if len(raw) % 16:
-    raise DataError(path, f"size {len(raw)} bytes is not a multiple of 16 "
-                    "(KITTI velodyne .bin holds float32 x, y, z, intensity)")
-  return np.frombuffer(raw, dtype="<f4").reshape(-1, 4)
+  values = np.frombuffer(raw, dtype="<f4") if len(raw) % 4 == 0 else None
+  problem = (bin_layout_problem(values, columns) if values is not None
+             else f"size {len(raw)} bytes is not a multiple of 4 (float32 values)")
+  if problem is None:
+    return values.reshape(-1, columns)
+  fits = [c for c in BIN_LAYOUTS
+          if c != columns and values is not None and bin_layout_problem(values, c) is None]
+  hint = (" or ".join(f"--columns {c} ({BIN_LAYOUTS[c]})" for c in fits) if fits
+          else "no layout of 3, 4 or 5 float32 values a point fits: is it a float32 point file?")
+  raise DataError(path, f"read as {_layout(columns)}: {problem}; "
+                  + (f"try {hint}" if fits else hint))
 
 
 def _read_text(path):
