@@ -17,6 +17,7 @@ Why x is left (HPLFlowNet's stored files, the readers' inputs):
 - KITTI (`kitti`): HPLFlowNet's KITTI files hold the camera's (x right, y down, z forward) with x
   and y negated (a 180 degree rotation about z): x left, y up, z forward, ground near y = -1.6.
 - synthetic_things, synthetic_lidar (jaxflow.data.synthetic): generated in the model frame.
+- synthetic_sweep (jaxflow.data.synthetic_sweep): raw sweeps, z up (x forward, y left).
 - opensf (OpenSceneFlow's Argoverse 2 and other LiDAR logs): `frame=ego` (its default) the ego
   frame as stored, x forward, y left, z up; `frame=camera` rotated into the model frame.
 - h5 (jaxflow.data.convert): the frame of the reader it was converted from (its `source`).
@@ -49,6 +50,8 @@ READERS = {
   "synthetic_things": ("x left, y up, z forward (generated in the model frame)", "y"),
   "synthetic_lidar": ("x left, y up, z forward (generated in the model frame)", "y"),
   "opensf,frame=ego": ("x forward, y left, z up (the ego frame as stored)", "z"),
+  "synthetic_sweep": ("x forward, y left, z up (raw 360-degree sweeps, the sensor at the origin)",
+                      "z"),
   "opensf,frame=camera": ("x left, y up, z forward (the ego frame rotated by to_model)", "y"),
 }
 
@@ -114,6 +117,8 @@ def dataset_up(dataset) -> str:
   """The up axis of a dataset's clouds: "z" for opensf's ego frame (also converted to h5), "y" (the
   model frame) for the other readers (see READERS)."""
   name = str(getattr(dataset, "name", ""))
+  if name.startswith("synthetic_sweep:"):
+    return "z"
   if name.startswith("opensf:"):
     return "z" if getattr(dataset, "options", {}).get("frame", "ego") == "ego" else "y"
   source = str(getattr(dataset, "source", ""))  # h5: the spec it was converted from

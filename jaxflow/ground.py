@@ -132,6 +132,9 @@ SURFACE_NEAR = 0.08  # metres: the points that refine the surface's height
 SURFACE_ROUNDS = 24  # reweighting rounds (the accepted region grows a window a round: slopes)
 SURFACE_EXTENT = 110.0  # metres: the height map's half width (points beyond use the edge cells)
 MAX_SENSOR_HEIGHT = 5.0  # metres: a ground farther below the sensor is refused (wrong --up)
+# metres: a ground higher above the origin is refused. Not 0: vehicle (ego) frames, Argoverse 2's and
+# Waymo's, put the origin near the ground, not at the sensor.
+MIN_SENSOR_HEIGHT = -1.0
 MAX_GROUND_FRACTION = 0.85  # a "ground" holding more of a sweep is refused
 
 
@@ -270,14 +273,16 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
 
 
 def check_ground(surface: Surface, ground_N, name: str, up: str):
-  """Refuses a ground that cannot be one (issue 29): far from the sensor's height, above the
-  sensor, or holding most of the sweep (a wall taken as ground under a wrong --up)."""
+  """Refuses a ground that cannot be one (issue 29): more than MAX_SENSOR_HEIGHT below the origin
+  (the sensor, or a vehicle frame's origin near the ground), more than 1 m above it, or holding
+  most of the sweep (a wall taken as ground under a wrong --up)."""
   height, fraction = surface.sensor_height, float(np.mean(ground_N))
   override = ("if this is right, give predict --noground_limits (ground_limits=False in "
               "Python)")
-  if not 0.0 < height <= MAX_SENSOR_HEIGHT:
+  if not MIN_SENSOR_HEIGHT <= height <= MAX_SENSOR_HEIGHT:
     raise DataError(name, f"the ground found along --up {up} lies {height:.1f} m below the "
-                    f"sensor (expected 0-{MAX_SENSOR_HEIGHT:g} m): is --up right? ({override})")
+                    f"origin (expected {MIN_SENSOR_HEIGHT:g} to {MAX_SENSOR_HEIGHT:g} m): is --up "
+                    f"right? ({override})")
   if fraction > MAX_GROUND_FRACTION:
     raise DataError(name, f"the ground found along --up {up} holds {100 * fraction:.0f}% of the "
                     f"points (more than {100 * MAX_GROUND_FRACTION:.0f}%): is --up right? "

@@ -25,11 +25,12 @@ Cloud size (jaxflow.inference): clouds above --max_points (config.eval.num_point
 and the flow mapped back to every PC1 point; --full (or --max_points 0) uses whole clouds, the
 correlation built --corr_chunk rows at a time. --seed seeds the sampling.
 
-Raw sweeps (--lidar): a RANSAC plane under the lowest points along --up (z, the LiDAR convention; y
-for a camera frame such as KITTI's) removes each cloud's ground, the points beyond --max_range (35 m,
-horizontal) go too, and the method estimates the flow of the rest (jaxflow.ground). A removed point
-gets the ego-motion flow of a rigid fit to the static part of that flow; a note says what was
-fitted. The size warning compares the clouds the method saw (after that cut).
+Raw sweeps (--lidar, jaxflow.sweep): the ground (local planes along --up: z, the LiDAR convention;
+y for a camera frame such as KITTI's), the sensor's ego-motion (a robust ICP of the two sweeps) and
+one rigid motion per moving object; every other point, ground and far points included, moves with
+the ego-motion. A note says what was found. The method runs only on a camera's view (under half the
+azimuth): on its non-ground points within --max_range (35 m), the others getting the rigid motion of
+its static part. --noground_limits accepts a ground the checks refuse.
 
 Model. The checkpoint (default: the shipped jaxflow/checkpoints/jaxflow_synthetic/) carries its
 config: the model is built from it. --config (default configs/default.py:eval) only sets evaluation

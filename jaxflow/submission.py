@@ -38,7 +38,7 @@ def _write(path: pathlib.Path, columns: dict):
     import pyarrow.feather  # pylint: disable=import-outside-toplevel
   except ImportError:
     raise ConfigError("--submission writes feather files, which needs pyarrow: pip install "
-                      "pyarrow") from None
+                      "'jaxflow[av2]' (or pyarrow)") from None
   try:
     path.parent.mkdir(parents=True, exist_ok=True)
     pyarrow.feather.write_feather(pyarrow.table(columns), str(path))

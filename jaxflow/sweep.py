@@ -94,14 +94,15 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
   notes = []
   surf1, g1 = _surface(pc1, names[0], notes)
   surf2, g2 = _surface(pc2, names[1], notes)
+  view = azimuth_coverage(pc1)
   if ground_limits:
     for raw, surf, g, name in ((pc1_Nx3, surf1, g1, names[0]), (pc2_Mx3, surf2, g2, names[1])):
-      ground.check_up_axis(raw, up, name, g.mean() if surf is not None else 0.0)
+      if view >= MIN_AZIMUTH:  # a camera facing a wall sees mostly wall: no sign of a wrong up
+        ground.check_up_axis(raw, up, name, g.mean() if surf is not None else 0.0)
       if surf is not None:
         ground.check_ground(surf, g, name, up)
   near1, near2 = ground.within_range(pc1, "z", max_range), ground.within_range(pc2, "z", max_range)
   keep1, keep2 = ~g1 & near1, ~g2 & near2
-  view = azimuth_coverage(pc1)
   if view < MIN_AZIMUTH and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
     return _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, order,
                         surf1, max_range, notes + [

@@ -92,7 +92,7 @@ def test_convert_writes_tmp_then_renames(tmp_path, monkeypatch, capsys):
   assert err[-1] == "convert: error: /data/0001/pc1.npy: truncated or corrupt .npy file"
   assert not out.exists() and not (tmp_path / "b.h5.tmp").exists()
   with pytest.warns(UserWarning, match="skipping broken pair 1"):
-    assert convert_module.main(["--dataset", "x:y", "--out", str(out), "--skip-broken"]) == 0
+    assert convert_module.main(["--dataset", "x:y", "--out", str(out), "--skip_broken"]) == 0
   ds = open_dataset(f"h5:{out}")
   assert [p.name for p in ds] == ["p0", "p2"] and list(ds.file.attrs["skipped"]) == [
       "/data/0001/pc1.npy: truncated or corrupt .npy file"]

@@ -28,12 +28,15 @@ NOT_RUN = {
                                       "reference fixture's)",
   "jaxflow.data.convert --dataset opensf:": "needs Argoverse 2 logs (tests/test_data_opensf.py "
                                             "converts a made-up log)",
+  "-m av2.evaluation.scene_flow.eval": "av2's own evaluator on a submission (tests/test_submission.py "
+                                       "runs it on a fixture's export)",
+  "--submission": "needs Argoverse 2 labels (tests/test_submission.py exports and scores a fixture)",
 }
 # Commands checked with --print_config only (the config file, its argument and every
 # --config.FIELD are loaded; nothing is trained or evaluated): they train the paper-size models or
 # need real data (FT3D, KITTI) or a checkpoint of another model, or several hosts.
 CONFIG_ONLY = ("configs/ft3d", "configs/paper.py", "configs/ablation.py", "configs/pvraft.py",
-               "configs/kitti_eval.py", "--coordinator")
+               "configs/kitti_eval.py", "configs/argoverse_eval.py", "--coordinator")
 # Toy overrides (all of them existing flags or config fields of the documented commands).
 TRAIN_TOY = {"train.num_steps": "2", "train.log_every": "1", "train.checkpoint_every": "2",
              "train.batch_size": "2", "train.num_iters": "1", "data.num_points": "64",

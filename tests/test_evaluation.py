@@ -110,7 +110,7 @@ def test_shared_flags_mean_the_config_fields_and_outputs_go_where_asked(workdir,
   np.testing.assert_allclose(got["epe"], direct["epe"], rtol=1e-6)
   flows = sorted((tmp_path / "flows").glob("*.npy"))
   assert len(flows) == 3 and all(np.load(f).shape == (48, 3) for f in flows)
-  assert len(list((tmp_path / "views").glob("*.png"))) == 3
+  assert len(list((tmp_path / "views").glob("*.png"))) == 6  # NAME.png and NAME_top.png a pair
 
 
 def test_infer_truncate_k_sets_the_candidates_when_evaluating_only(workdir):

@@ -17,16 +17,26 @@ def test_the_script_parses():
   assert proc.returncode == 0, proc.stderr
 
 
-@pytest.mark.slow
-def test_dry_device_round_logs_each_step_and_keeps_its_deadline(tmp_path):
-  # A deadline that lets the first two steps run: the rest must be skipped, not overrun.
+def _dry_round(tmp_path, **env):
   env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHON": sys.executable, "OUT": str(tmp_path),
-         "DRY": "1", "DEADLINE": "40", "PYTHONPATH": str(REPO)}
+         "DRY": "1", "PYTHONPATH": str(REPO), **env}
   proc = subprocess.run(["bash", "scripts/gpu_round.sh", "device"], cwd=REPO, env=env,
-                        capture_output=True, text=True, timeout=120)
+                        capture_output=True, text=True, timeout=1200)
   assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-  log = (tmp_path / "device_round.txt").read_text()
+  return (tmp_path / "device_round.txt").read_text()
+
+
+@pytest.mark.slow
+def test_dry_device_round_logs_each_step_in_order(tmp_path):
+  # The first two steps run (by count, not by the machine's speed); the others are logged skipped.
+  log = _dry_round(tmp_path, MAX_STEPS="2")
   assert "== devices: exit 0" in log and "CpuDevice" in log
   assert "== gpu_tests: exit 0" in log and "skipped" in log  # the GPU tests skip on a CPU
-  assert "== methods: skipped (the round's 40 s are spent)" in log
+  assert "== methods: skipped (MAX_STEPS=2)" in log
   assert log.rstrip().splitlines()[-1].startswith("device round: ")
+
+
+def test_a_spent_deadline_skips_every_step(tmp_path):
+  log = _dry_round(tmp_path, DEADLINE="5")  # under 10 s left from the start: nothing runs
+  assert "== devices: skipped (the round's 5 s are spent)" in log
+  assert "== methods: skipped (the round's 5 s are spent)" in log and "exit" not in log

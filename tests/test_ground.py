@@ -133,7 +133,7 @@ def test_a_wall_taken_for_the_ground_is_refused_with_the_way_out():
   ground.check_up_axis(pts, "z", "sweep.bin", 0.8)  # the right axis passes
   surface = ground.fit_surface(pts, "z")
   far = dataclasses.replace(surface, coef_HxWx3=surface.coef_HxWx3 - [0, 0, 8.0])
-  with pytest.raises(DataError, match="8.* m below the sensor.*ground_limits=False"):
+  with pytest.raises(DataError, match="8.* m below the origin.*ground_limits=False"):
     ground.check_ground(far, np.zeros(len(pts), bool), "sweep.bin", "z")
   with pytest.raises(DataError, match="holds 90% of the points.*ground_limits=False"):
     ground.check_ground(surface, np.arange(100) < 90, "sweep.bin", "z")

@@ -133,11 +133,6 @@ for name in sys.argv[1:]:
   os.waitpid(pid, 0)
 print(json.dumps(found))
 """
-# jaxflow.viz chooses the Agg backend at import; the view helper's branch removes that (the lead:
-# drop this entry once it is merged).
-KNOWN_SIDE_EFFECTS = {"jaxflow.viz"}
-
-
 def test_importing_a_module_changes_neither_matplotlib_nor_absl_flags():
   import json
   import os
@@ -154,7 +149,7 @@ def test_importing_a_module_changes_neither_matplotlib_nor_absl_flags():
   errors = {n: r["error"] for n, r in found.items() if "error" in r}
   assert errors == {}
   effects = {n: r for n, r in found.items() if r["backend"] is not None or r["flags"]}
-  assert set(effects) <= KNOWN_SIDE_EFFECTS, effects
+  assert effects == {}, effects
 
 
 def test_a_point_file_reader_imports_neither_h5py_nor_the_scene_generator():

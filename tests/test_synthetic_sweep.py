@@ -1,7 +1,5 @@
 """The raw 360-degree sweep generator (jaxflow.data.synthetic_sweep)."""
 
-import time
-
 import numpy as np
 import pytest
 
@@ -16,10 +14,8 @@ def sweep():
   return ss.sweep_pair("val", 0)
 
 
-def test_a_full_sweep_is_raw_z_up_and_fast():
-  start = time.perf_counter()
-  s = ss.sweep_pair("test", 1)
-  assert time.perf_counter() - start < 3.0  # ~0.1 s idle
+def test_a_full_sweep_is_raw_z_up():
+  s = ss.sweep_pair("test", 1)  # ~0.1 s on an idle 2-core CPU (benchmarks/METHODS.md): untimed here
   assert 60_000 < len(s.pc1) < 150_000 and 60_000 < len(s.pc2) < 150_000
   r = np.linalg.norm(s.pc1, axis=1)
   assert r.max() <= ss.MAX_RANGE + 0.1 and r.max() > 50
@@ -82,3 +78,16 @@ def test_registered_as_a_dataset_with_three_way_labels():
   assert pair.has_labels and pair.mask.sum() > 0 and not pair.mask.all()
   with pytest.raises(DataError, match="split"):
     open_dataset("synthetic_sweep:2", "train")
+
+
+def test_the_dataset_says_it_is_z_up_and_carries_the_av2_labels():
+  """evaluate.py rotates synthetic_sweep's z-up clouds into the models' frame (frames.dataset_up)
+  and reports the official breakdown from its categories (the sensor's x, y as the ego's)."""
+  from jaxflow import frames  # pylint: disable=import-outside-toplevel
+
+  ds = open_dataset("synthetic_sweep:1", "test")
+  assert frames.dataset_up(ds) == "z"
+  pair, truth = ds[0], ss.sweep_pair("test", 0)
+  np.testing.assert_array_equal(pair.category, truth.category)
+  np.testing.assert_array_equal(pair.ego_xy, truth.pc1[:, :2])
+  assert pair.category.dtype == np.uint8 and (pair.category != 0).any()

@@ -65,7 +65,7 @@ def main(argv=None) -> int:
   parser.add_argument("--split", default=None, help="train | val | test | train_all (reader dependent)")
   parser.add_argument("--out", required=True, help="output FILE.h5")
   parser.add_argument("--limit", type=int, default=None, help="convert only the first LIMIT pairs")
-  parser.add_argument("--skip-broken", action="store_true",
+  parser.add_argument("--skip_broken", action="store_true",
                       help="skip unreadable pairs instead of stopping")
   try:
     args = parser.parse_args(argv)

@@ -69,9 +69,11 @@ class SweepPair:
     return self.category != BACKGROUND
 
   def to_pair(self) -> Pair:
-    """As a jaxflow Pair: mask = eval_mask, rigid_flow = ego_flow (the three-way EPE)."""
+    """As a jaxflow Pair: mask = eval_mask, rigid_flow = ego_flow, the av2 categories and the
+    points' x, y (the sensor's frame stands for the ego frame: the official breakdown)."""
     return Pair(self.pc1, self.pc2, self.flow, self.eval_mask, self.name, rigid_flow=self.ego_flow,
-                foreground=self.foreground)
+                foreground=self.foreground, category=self.category.astype(np.uint8),
+                ego_xy=np.ascontiguousarray(self.pc1[:, :2], np.float32))
 
 
 @dataclasses.dataclass(frozen=True)
