@@ -49,7 +49,8 @@ def main(frame=FRAME, seeds=3):
   start = time.perf_counter()
   keep1, ground1, plane = ground.lidar_keep(raw1, "y")
   t_ground = time.perf_counter() - start
-  lidar = predictor.predict(raw1, raw2, lidar=True, up="y").flow
+  prediction = predictor.predict(raw1, raw2, lidar=True, up="y")
+  lidar, info = prediction.flow, prediction.sweep
   start = time.perf_counter()
   rigid.fit_static_motion(raw1[keep1], lidar[keep1])
   t_rigid = time.perf_counter() - start

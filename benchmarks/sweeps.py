@@ -12,6 +12,8 @@ FD / FS / BS averaged over the pairs that have such points, "mean" over the pair
   the rigid motion fitted to its static part), both with the network alone (8192 points, 32
   iterations), on the first pairs only (a network call takes 5-80 s on a loaded 2-core CPU).
 Seconds: wall time a pair in this process (the machine may be shared; the JSON says how loaded).
+Then the official readings of the same flows (jaxflow.av2_eval, equal to av2's evaluator): the av2
+breakdown count-weighted over the split (EPE 3-Way Average) and the 2024 bucketed normalised EPE.
 """
 
 import argparse
@@ -23,7 +25,7 @@ import time
 
 import numpy as np
 
-from jaxflow import metrics, rigid, sweep
+from jaxflow import av2_eval, metrics, rigid, sweep
 from jaxflow.data import synthetic_sweep as ss
 
 KITTI = pathlib.Path(__file__).resolve().parents[2] / "shared/data/KITTI_processed_occ_final/000002"
@@ -86,6 +88,7 @@ def main():
       network, s.pc1, s.pc2, use_network=True)[0]
     methods["previous --lidar (network, rigid fit)"] = lambda s: old_lidar(network, s)
   per = {k: [] for k in methods}
+  official = {k: [0.0, 0.0] for k in methods}  # summed av2 breakdown and buckets of each method
   for i in range(args.pairs):
     s = ss.sweep_pair(args.split, i)
     for name, fn in methods.items():
@@ -99,6 +102,9 @@ def main():
       r["epe"] = float(np.linalg.norm(flow - pair.flow, axis=1).mean())
       r["seconds"] = seconds
       per[name].append(r)
+      args_av2 = (flow, pair.flow, pair.ego_flow, pair.category, pair.pc1[:, :2], pair.eval_mask)
+      official[name][0] += av2_eval.breakdown_sums(av2_eval.pair_labels(*args_av2))
+      official[name][1] += av2_eval.bucketed_sums(*args_av2)
       print(f"{s.name} {len(s.pc1)} points, {name}: "
             + " ".join(f"{k} {v:.4f}" for k, v in r.items()), flush=True)
   rows = {}
@@ -107,6 +113,18 @@ def main():
       rows[name] = {k: float(np.nanmean([r[k] for r in rs])) for k in rs[0]}
       rows[name]["pairs"] = len(rs)
   print(f"\nsynthetic_sweep {args.split} pairs 0-{args.pairs - 1}\n" + table(rows))
+  av2_rows = {}
+  print("\n| method | pairs | av2 EPE 3-Way Average | FD | FS | BS | Dynamic IoU | bucketed static "
+        "EPE | bucketed dynamic normalised EPE |\n|---|---|---|---|---|---|---|---|---|")
+  for name, (breakdown, buckets) in official.items():
+    if not per[name]:
+      continue
+    r, b = av2_eval.breakdown_results(breakdown), av2_eval.bucketed_results(buckets)
+    av2_rows[name] = {"av2": r, "bucketed": b}
+    print(f"| {name} | {len(per[name])} | {r['EPE 3-Way Average']:.4f} | "
+          f"{r['EPE/Foreground/Dynamic']:.4f} | {r['EPE/Foreground/Static']:.4f} | "
+          f"{r['EPE/Background/Static']:.4f} | {r['Dynamic IoU']:.3f} | {b['static_epe']:.4f} | "
+          f"{b['dynamic_norm_epe']:.4f} |")
   kitti = {}
   if (KITTI / "pc1.npy").exists():  # raw frame, camera axes (y up), rows correspond
     from jaxflow.data.readers import kitti_keep  # pylint: disable=import-outside-toplevel
@@ -122,7 +140,8 @@ def main():
     machine = {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                "load_average": os.getloadavg()}
     pathlib.Path(args.json).write_text(json.dumps(
-      {"machine": machine, "split": args.split, "rows": rows, "per_pair": per, "kitti": kitti},
+      {"machine": machine, "split": args.split, "rows": rows, "per_pair": per, "kitti": kitti,
+       "official": av2_rows},
       indent=2) + "\n")
 
 

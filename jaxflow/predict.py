@@ -53,8 +53,6 @@ exits with code 2.
 import pathlib
 import sys
 
-import numpy as np
-
 from jaxflow import cli, export, ground, inference, methods, submission
 from jaxflow.errors import ConfigError
 

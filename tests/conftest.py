@@ -28,3 +28,22 @@ def shared_dir():
   if not SHARED.is_dir():
     pytest.skip(f"{SHARED} not present")
   return SHARED
+
+
+@pytest.fixture(scope="session")
+def smoke_checkpoint(tmp_path_factory):
+  """A stage-1 checkpoint of the smoke model with random weights (for command paths whose numbers
+  only have to agree with each other)."""
+  from jaxflow import checkpointing, train_state  # pylint: disable=import-outside-toplevel
+  from jaxflow.configs import default  # pylint: disable=import-outside-toplevel
+  from jaxflow.model import build_model  # pylint: disable=import-outside-toplevel
+
+  config = default.get_config("smoke")
+  model = build_model(config.model)
+  state = train_state.create_train_state(train_state.init_params(model, config, jax.random.key(0)),
+                                         train_state.make_optimizer(config, 1))
+  path = tmp_path_factory.mktemp("smoke_ckpt")
+  ckpts = checkpointing.Checkpoints(path / "checkpoints")
+  ckpts.save(1, state, config)
+  ckpts.close()
+  return path

@@ -11,16 +11,13 @@ import sys
 from pathlib import Path
 
 import h5py
-import jax
 import numpy as np
 import pytest
 
-from jaxflow import checkpointing, evaluation, export, train_state
-from jaxflow.configs import default
+from jaxflow import evaluation, export
 from jaxflow.data import convert, eval_batches, open_dataset, opensf
 from jaxflow.errors import DataError
 from jaxflow.metrics import three_way_epe
-from jaxflow.model import build_model
 
 REPO = Path(__file__).absolute().parent.parent
 # log -> [(timestamp, labelled)]: numeric order differs from string order (9 < 10 < 11 < 100)
@@ -181,17 +178,8 @@ def test_conversion_keeps_the_ego_motion_and_labels(opensf_dir, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-  """A stage-1 checkpoint of the smoke model (random weights: the command path is checked)."""
-  config = default.get_config("smoke")
-  model = build_model(config.model)
-  state = train_state.create_train_state(train_state.init_params(model, config, jax.random.key(0)),
-                                         train_state.make_optimizer(config, 1))
-  path = tmp_path_factory.mktemp("ckpt")
-  ckpts = checkpointing.Checkpoints(path / "checkpoints")
-  ckpts.save(1, state, config)
-  ckpts.close()
-  return path
+def checkpoint(smoke_checkpoint):
+  return smoke_checkpoint
 
 
 def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoint, tmp_path):

@@ -14,16 +14,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
 
 import av2_fixture
-from jaxflow import checkpointing, export, submission, training
-from jaxflow.configs import default
+from jaxflow import export, submission
 from jaxflow.data import open_dataset
 from jaxflow.errors import ConfigError
-from jaxflow.model import build_model
 
 pd = pytest.importorskip("pandas")
 pytest.importorskip("pyarrow")
@@ -33,17 +30,8 @@ REPO = Path(__file__).absolute().parent.parent
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-  """A stage-1 checkpoint of the smoke model (random weights: the numbers only have to agree)."""
-  config = default.get_config("smoke")
-  model = build_model(config.model)
-  state = training.create_train_state(training.init_params(model, config, jax.random.key(0)),
-                                      training.make_optimizer(config, 1))
-  path = tmp_path_factory.mktemp("ckpt")
-  ckpts = checkpointing.Checkpoints(path / "checkpoints")
-  ckpts.save(1, state, config)
-  ckpts.close()
-  return path
+def checkpoint(smoke_checkpoint):
+  return smoke_checkpoint
 
 
 def run(args, timeout=300):
