@@ -150,6 +150,7 @@ def test_train_says_where_it_wrote(tmp_path):
                                             "eval.json")]
 
 
+@pytest.mark.slow
 def test_predict_text_output_small_cloud_and_size_warning(tmp_path):
   if not checkpointing.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")

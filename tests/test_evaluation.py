@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import default
-from jaxflow import checkpointing, evaluation, reporting, training
+from jaxflow import checkpointing, evaluation, reporting
 from jaxflow.model import build_model
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
@@ -25,16 +25,14 @@ CACHE = os.environ.setdefault(
   "JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "jaxflow-test-xla-cache")
 )
 jax.config.update("jax_compilation_cache_dir", CACHE)
-STEP = 24  # the last step of configs/default.py:smoke
+STEP = 1  # the step of conftest's smoke_checkpoint
 
 
 @pytest.fixture(scope="module")
-def workdir(tmp_path_factory):
-  workdir = tmp_path_factory.mktemp("run")
-  config = default.get_config("smoke")
-  config.eval.dataset = ""
-  training.train_and_evaluate(config, workdir)
-  return workdir
+def workdir(smoke_checkpoint):
+  """A checkpoint of the smoke model: evaluation's plumbing needs no trained weights (training
+  end to end: tests/test_training.py)."""
+  return smoke_checkpoint
 
 
 def evaluate_cli(*args):
@@ -139,6 +137,7 @@ def test_infer_truncate_k_sets_the_candidates_when_evaluating_only(workdir):
   assert checkpointing.model_differences(old, config) == ["infer_truncate_k: 0 != -1"]
 
 
+@pytest.mark.slow
 def test_cli_keeps_the_checkpoints_candidates_unless_given(workdir, tmp_path):
   run, step_dir = copy_run(workdir, tmp_path)
   meta = step_dir / "config" / "metadata"
@@ -237,6 +236,7 @@ def test_no_checkpoint_and_none_shipped_is_a_clear_error(monkeypatch, tmp_path):
     evaluation.evaluate_checkpoint(None, default.get_config("eval"), "synthetic_lidar:2")
 
 
+@pytest.mark.slow
 def test_cli_bad_checkpoint_is_one_line_and_exit_2(workdir, tmp_path):
   run, step_dir = copy_run(workdir, tmp_path)
   (step_dir / "_CHECKPOINT_METADATA").unlink()

@@ -4,6 +4,7 @@ DESIGN section 1), and stage 2's gradient reaches the refinement only."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from flax import traverse_util
 
 from jaxflow import losses, train_state, training
@@ -31,6 +32,7 @@ def flat(tree):
   return traverse_util.flatten_dict(tree, sep="/")
 
 
+@pytest.mark.slow
 def test_the_estimate_entering_each_iteration_carries_no_gradient():
   """The gradient of the iterated part (the update block) equals that of the same model whose
   iterations are given the estimates entering them as constants (`entering`: the forward pass's

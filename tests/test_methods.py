@@ -23,6 +23,7 @@ def _rotation(angle):
   return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], np.float32)
 
 
+@pytest.mark.slow
 def test_nsfp_recovers_a_rigid_motion():
   rng = np.random.default_rng(0)
   pc1 = rng.uniform(-2, 2, (128, 3)).astype(np.float32)
@@ -59,6 +60,7 @@ def test_early_stopping_stops_and_returns_the_best_loss_flow():
   assert int(info["steps"][0]) == steps + 7 and not bool(info["stopped"][0])
 
 
+@pytest.mark.slow
 def test_clusters_and_their_rigid_motions():
   rng = np.random.default_rng(2)
   a = rng.uniform(0, 1, (40, 3))
@@ -101,6 +103,7 @@ def _degenerate_pairs():
   return pc1, pc2
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method, chosen", [
   ("nsfp", _TINY_NSFP), ("nsfp", dataclasses.replace(_TINY_NSFP, objective="grid")),
   ("optimise", _TINY)])

@@ -180,6 +180,7 @@ def test_stage2_freezes_backbone_bitwise_and_trains_refinement(stage1, tmp_path)
   assert n_opt == 2 * n_refine  # Adam's mu and nu
 
 
+@pytest.mark.slow
 def test_stage1_init_from_warm_starts_every_parameter(stage1, tmp_path):
   stage1_dir, stage1_state = stage1
   config = smoke({"train.init_from": str(stage1_dir), "train.num_steps": 1, "eval.dataset": ""})
