@@ -54,8 +54,8 @@ def smoke_checkpoint(tmp_path_factory):
 # last files to start are short ones and both workers finish together (xdist's default order, by
 # the number of tests in a file, left the few-test files of minutes each for the end).
 LONGEST_FIRST = (
-  "test_docs.py", "test_gpu_round.py", "test_distributed.py", "test_methods.py", "test_model.py",
-  "test_two_stage.py", "test_resume.py", "test_training.py", "test_predict.py",
+  "test_methods.py", "test_distributed.py", "test_gpu_round.py", "test_docs.py", "test_model.py",
+  "test_two_stage.py", "test_training.py", "test_resume.py", "test_predict.py",
   "test_evaluation.py", "test_cli.py", "test_precision.py", "test_install.py", "test_ops.py",
   "test_search.py", "test_pvraft_fidelity.py", "test_gradients.py", "test_submission.py",
   "test_determinism.py", "test_viewer.py")

@@ -69,6 +69,7 @@ def test_run_with_absl_flags():
   assert_one_line_error(python("-c", ABSL_MAIN, "--n=abc"), "abc")  # a flag parsing error
 
 
+@pytest.mark.slow
 def test_train_py_user_errors_are_one_line(tmp_path):
   assert_one_line_error(
     python("train.py", "--config", "configs/default.py:smoke", "--workdir", tmp_path,
@@ -190,6 +191,7 @@ def _popen(*args, stdout=subprocess.PIPE):
                           stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 def test_every_tool_has_a_help_that_exits_0_also_into_a_closed_pipe():
   helps = {t: _popen("-m", t, "--help") for t in TOOLS}
   helps.update({s: _popen(s, "--help") for s in ("evaluate.py", "train.py")})

@@ -182,6 +182,7 @@ def checkpoint(smoke_checkpoint):
   return smoke_checkpoint
 
 
+@pytest.mark.slow
 def test_evaluate_py_reports_three_way_and_saves_every_flow(opensf_dir, checkpoint, tmp_path):
   root, _ = opensf_dir
   env = dict(os.environ, JAX_PLATFORMS="cpu",

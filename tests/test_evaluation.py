@@ -42,6 +42,7 @@ def evaluate_cli(*args):
                         capture_output=True, text=True, timeout=1200)
 
 
+@pytest.mark.slow
 def test_same_command_twice_gives_identical_numbers(workdir, tmp_path):
   results = []
   for i in range(2):
@@ -91,6 +92,7 @@ def test_an_old_config_with_test_time_is_refused_naming_the_method(workdir):
     evaluation.evaluate_checkpoint(workdir, config, "synthetic_lidar:2", "test")
 
 
+@pytest.mark.slow
 def test_shared_flags_mean_the_config_fields_and_outputs_go_where_asked(workdir, tmp_path):
   """--iters / --max_points / --seed are config.eval.num_iters / num_points / seed (as in
   predict); --save_flows and --render_dir receive one file per pair."""

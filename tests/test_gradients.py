@@ -61,6 +61,7 @@ def test_the_estimate_entering_each_iteration_carries_no_gradient():
     np.testing.assert_allclose(got[k], want[k], rtol=1e-4, atol=1e-6 * scale, err_msg=k)
 
 
+@pytest.mark.slow
 def test_stage2_gradient_reaches_the_refinement_only():
   """With freeze_backbone (stage 2) the refinement loss's gradient is exactly zero on every
   backbone parameter and non-zero on the refinement's (checked by hand: without the freeze's

@@ -230,6 +230,7 @@ def test_sampling_maps_flow_to_nearest_sampled_point(predictor, files, pair):
   assert flow.shape == (2 * N1, 3) and len(np.unique(flow, axis=0)) <= N1
 
 
+@pytest.mark.slow
 def test_optimise_refines_every_point_of_a_sampled_cloud(workdir, files):
   big = np.load(files / "big.npy")
   move = np.float32([0.3, 0.0, -0.2])
@@ -283,6 +284,7 @@ def test_lidar_gives_every_raw_point_a_flow_and_saves_it(runs, files, predictor)
   np.testing.assert_allclose(api, flow, atol=1e-4)
 
 
+@pytest.mark.slow  # it reads the `runs` fixture (every command line at once)
 def test_nsfp_is_a_method_of_predict_with_its_objective(runs, files, pair):
   rc, _, stderr = runs["nsfp_grid"]
   assert rc == 0, stderr

@@ -264,6 +264,7 @@ def _ft3d_folder(root: Path, n: int, broken: int) -> Path:
   return root
 
 
+@pytest.mark.slow
 def test_broken_data_stops_or_is_skipped_and_reported(tmp_path, capsys):
   root = _ft3d_folder(tmp_path / "ft3d", n=6, broken=2)
   broken = str(root / "val" / "0000002")
