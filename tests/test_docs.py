@@ -182,9 +182,7 @@ def test_every_documented_command_runs_at_toy_size(tmp_path):
   assert done[0] == 0, done[2][-2000:]  # its toy run is the checkpoint of the other commands
   argv = shlex.split(main_job)
   checkpoint = tmp_path / Path(argv[argv.index("--workdir") + 1]).name
-  # The first command of each family runs first, the others once it is done: they find its
-  # programs compiled in jax's persistent cache (run all at once, each compiled them again).
-  waves, seen, families = ({}, {}), set(), set()
+  runs, seen = {}, set()
   for i, (where, command) in enumerate(c for c in commands if plan(c[1])[0] == "run"):
     same = tuple(toy_args(command, Path("CWD"), checkpoint))  # (no files written)
     if same in seen:  # e.g. the main job in README.md and docs/training.md: run once
@@ -192,21 +190,9 @@ def test_every_documented_command_runs_at_toy_size(tmp_path):
     seen.add(same)
     cwd = tmp_path / f"cmd{i}"
     cwd.mkdir()
-    wave = int(_family(same) in families)
-    families.add(_family(same))
-    waves[wave][(where, command)] = (toy_args(command, cwd, checkpoint), cwd)
-  first = _wait({**checks, **{k: _start(*v) for k, v in waves[0].items()}})
-  rest = _wait({k: _start(*v) for k, v in waves[1].items()})
-  assert len(first) + len(rest) == len(checks) + len(seen)
-  failed = {k: r[2][-1500:] for k, r in {**first, **rest}.items() if r[0] != 0}
+    runs[(where, command)] = _start(toy_args(command, cwd, checkpoint), cwd)
+  failed = {k: r[2][-1500:] for k, r in {**_wait(checks), **_wait(runs)}.items() if r[0] != 0}
   assert failed == {}
-
-
-def _family(argv) -> tuple:
-  """The tool, config, method, objective and --lidar of a command: its compiled programs."""
-  value = lambda flag: argv[argv.index(flag) + 1] if flag in argv else None
-  tool = argv[2] if argv[1] == "-m" else Path(argv[1]).name
-  return tool, value("--config"), value("--method"), value("--objective"), "--lidar" in argv
 
 
 # Python blocks of the docs, by file: what each is checked against (or why it is not run).
