@@ -82,6 +82,7 @@ def test_jit_compiles_once_per_shape():
   assert len(traces) == 2
 
 
+@pytest.mark.slow  # op by op, the first such network test: ~20 s of small compilations
 @pytest.mark.parametrize("cell", ["single_gate", "gru"])
 def test_scan_equals_python_loop(cell):
   model = build_model(small_config(cell=cell))
@@ -159,6 +160,7 @@ def test_gradients_finite_with_fewer_points_than_k():
   assert finite_loss_and_grads(cfg, pc1, pc2)
 
 
+@pytest.mark.slow  # op by op: seconds after the scan test (its operations compiled), ~20 s alone
 def test_far_cloud_gives_the_same_flow_as_near():
   """Translation invariance: the network sees only relative positions (up to float32 rounding)."""
   model = build_model(small_config())
