@@ -3,14 +3,17 @@ and 7, our way. Prints a markdown table (EPE, AccS, AccR, outliers, seconds a pa
 
     python benchmarks/methods.py --json benchmarks/methods.json [--synthetic 4] [--nsfp-steps N]
 
-Pairs: the real KITTI and FT3D samples of ../shared/data (skipped when absent) and the first
---synthetic val pairs of synthetic_things and synthetic_lidar, 8192 points a cloud (the evaluation
-sampling, seed 0). The network is the shipped checkpoint. Seconds a pair are the wall time of the
-compiled method (compilation excluded; for optimise the network's time is included) on this machine.
+Pairs: the real KITTI and FT3D samples of ../shared/data (skipped when absent; FT3D's 21 pairs are
+its "train_all" and "val" splits read one after the other, each pair's EPE in the JSON) and the
+first --synthetic val pairs of synthetic_things and synthetic_lidar, 8192 points a cloud (the
+evaluation sampling, seed 0). The network is the shipped checkpoint. Seconds a pair are the wall
+time of the compiled method (compilation excluded; for optimise the network's time is included) on
+this machine. `--no-bodies`: optimise without its last stage (what jaxflow.bodies gains).
 """
 
 import argparse
 import dataclasses
+import itertools
 import json
 import os
 import pathlib
@@ -18,6 +21,7 @@ import platform
 import time
 
 import jax
+import numpy as np
 
 from jaxflow import checkpointing, evaluation, methods
 from jaxflow.data import eval_batches, open_dataset
@@ -31,7 +35,7 @@ def datasets(synthetic: int):
   if kitti.is_dir():
     sets.append(("KITTI real", f"kitti:{kitti}", "test", None))
   if ft3d.is_dir():
-    sets.append(("FT3D real", f"ft3d:{ft3d}", "train_all", None))
+    sets.append(("FT3D real", f"ft3d:{ft3d}", ("train_all", "val"), None))
   if synthetic:
     sets += [("synthetic_things", f"synthetic_things:{synthetic}", "val", None),
              ("synthetic_lidar", f"synthetic_lidar:{synthetic}", "val", None)]
@@ -45,20 +49,33 @@ def main():
   parser.add_argument("--nsfp-steps", type=int, default=None, help="cap NSFP's 5000 steps")
   parser.add_argument("--methods", default="network,nsfp,optimise")
   parser.add_argument("--num-points", type=int, default=8192)
+  parser.add_argument("--no-bodies", action="store_true",
+                      help="optimise without its last stage (jaxflow.bodies): the gain it brings")
   args = parser.parse_args()
   model, params, _, _, refine = checkpointing.load_for_inference(None)
   rows, results = [], {}
   for method in args.methods.split(","):
     chosen = methods.settings(method, args.nsfp_steps if method == "nsfp" else None)
+    if method == "optimise" and args.no_bodies:
+      chosen = dataclasses.replace(chosen, bodies=None)
     predict = evaluation.model_predict_fn(model, 32, refine, method=method, method_settings=chosen,
                                           with_info=method != "network")
     compiled = {}  # one compilation for every dataset (same shapes)
-    for name, spec, split, _ in datasets(args.synthetic):
-      batches = eval_batches(open_dataset(spec, split), 1, args.num_points, seed=0)
+    for name, spec, splits, _ in datasets(args.synthetic):
+      splits = splits if isinstance(splits, tuple) else (splits,)
+      per_pair = {}
+
+      def record(batch, flow, per_pair=per_pair):  # each pair's EPE (batches of one pair)
+        error = np.linalg.norm(flow[0] - batch["flow"][0], axis=-1)
+        per_pair[batch["names"][0]] = float(np.mean(error, where=batch["mask"][0] > 0))
+
+      batches = itertools.chain(*(eval_batches(open_dataset(spec, split), 1, args.num_points,
+                                               seed=0) for split in splits))
       start = time.perf_counter()
       # pylint: disable-next=protected-access
-      r = evaluation._run(predict, (params,), batches, compiled=compiled)
+      r = evaluation._run(predict, (params,), batches, compiled=compiled, on_batch=(record,))
       r["wall_s"] = time.perf_counter() - start
+      r["per_pair_epe"] = per_pair
       r.update(methods.describe(method, chosen))
       results[f"{method} / {name}"] = r
       rows.append((method, name, r))

@@ -60,8 +60,8 @@ def yaw_motion(yaw_deg: float, x: float, y: float) -> rigid.Motion:
   return motion_from([[c, -s, 0], [s, c, 0], [0, 0, 1]], [x, y, 0.0])
 
 
-def _exp(omega_3) -> np.ndarray:
-  """Rotation matrix of the rotation vector omega (Rodrigues)."""
+def rotation_from_vector(omega_3) -> np.ndarray:
+  """Rotation matrix of the rotation vector omega (Rodrigues), NumPy float64."""
   angle = float(np.linalg.norm(omega_3))
   if angle < 1e-12:
     return np.eye(3)
@@ -167,7 +167,7 @@ def icp(target: Target, above_Kx3, ground_Gx3, start: rigid.Motion, rounds: int 
     jac = np.c_[np.cross(q, n), n]
     h = jac.T @ (jac * w[:, None]) + 1e-6 * np.eye(6)
     step = -np.linalg.solve(h, jac.T @ (w * r))
-    d_rot = _exp(step[:3])
+    d_rot = rotation_from_vector(step[:3])
     rotation, translation = d_rot @ rotation, d_rot @ translation + step[3:]
     if np.abs(step).max() < 1e-6 and scale == SCALES[-1]:
       break

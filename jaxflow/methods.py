@@ -4,8 +4,9 @@
 - `nsfp`: Neural Scene Flow Prior (Li et al. 2021, the paper's Tables 4 and 7 baseline): NSFP's
   MLP optimised per pair from zero flow, no network, no checkpoint (`optimiser.NSFP`).
 - `optimise`: the network's flow refined per pair by the fast optimiser (distance-grid Chamfer +
-  smoothness, then the piecewise-rigid steps of jaxflow.rigid_clusters): the recommended method for
-  real data, and predict's default.
+  smoothness, then the piecewise-rigid steps of jaxflow.rigid_clusters, an exact polish, and the
+  scene's rigid bodies fitted to pc2 by jaxflow.bodies): the recommended method for pairs that are
+  not raw LiDAR sweeps (those take `predict --lidar`, jaxflow.sweep), and predict's default.
 
     fn = flow_fn("optimise", network)   # network: (params, pc1, pc2) -> flow, B x N x 3
     flow_BxNx3 = jax.jit(fn)(params, pc1_BxNx3, pc2_BxMx3)
@@ -13,10 +14,11 @@
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflow import optimiser, rigid_clusters
+from jaxflow import bodies, optimiser, rigid_clusters
 from jaxflow.errors import ConfigError
 
 METHODS = ("network", "nsfp", "optimise")
@@ -33,7 +35,9 @@ class Optimise:
   `rigid_steps` > 0, clusters of points that move together (jaxflow.rigid_clusters) each get the
   rigid motion of their flow, optimised against pc2 for `rigid_steps` steps (6 numbers a cluster);
   then `polish`: free-vector steps from that flow on the exact two-way Chamfer (nearest points by
-  k-d tree), which the one-way grid cannot give (steps 0: none)."""
+  k-d tree), which the one-way grid cannot give (steps 0: none); then `bodies` (None: none): the
+  scene's rigid bodies found in that flow and fitted to pc2 (jaxflow.bodies, on the host: one
+  device-host round trip a batch)."""
   refine: optimiser.Settings = optimiser.Settings(
     model="flow", objective="grid", steps=400, learning_rate=0.05, smoothness=1.0)
   clusters: rigid_clusters.Settings = rigid_clusters.Settings()
@@ -43,10 +47,12 @@ class Optimise:
   # Chosen on the synthetic val pairs (benchmarks/METHODS.md): 200 steps at lr 0.02.
   polish: optimiser.Settings = optimiser.Settings(
     model="flow", objective="exact", steps=200, learning_rate=0.02, smoothness=1.0, refresh=5)
+  bodies: "bodies.Settings | None" = bodies.Settings()  # (a string: the field hides the module)
 
 
 def settings(method: str, steps: int | None = None):
-  """The default settings of a method (None for `network`); `steps` caps the optimiser's steps."""
+  """The default settings of a method (None for `network`); `steps` caps the optimiser's steps
+  (optimise's rigid-bodies stage counts none: it runs whatever `steps`)."""
   if method not in METHODS:
     raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
   if method == "network":
@@ -82,7 +88,22 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise):
     flow = fitted
   if chosen.polish.steps:
     flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, chosen.polish)[0]
+  if chosen.bodies is not None:
+    flow = rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow, chosen.bodies)
   return flow, info
+
+
+def rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, chosen: bodies.Settings):
+  """jaxflow.bodies.rigid_bodies of each pair of a batch, from inside jit (a host callback)."""
+
+  def host(pc1, pc2, flow):
+    return np.stack([bodies.rigid_bodies(a, b, f, chosen)[0]
+                     for a, b, f in zip(pc1, pc2, flow)]).astype(flow.dtype)
+
+  shape = jax.ShapeDtypeStruct(flow_BxNx3.shape, flow_BxNx3.dtype)
+  return jax.pure_callback(host, shape, *map(jax.lax.stop_gradient,
+                                             (pc1_BxNx3, pc2_BxMx3, flow_BxNx3)),
+                           vmap_method="sequential")
 
 
 def flow_fn(method: str, network=None, chosen=None, with_info: bool = False):

@@ -1,0 +1,230 @@
+"""The rigid bodies of a scene, found from a flow and fitted to pc2: the last stage of `optimise`.
+
+    flow_Nx3, found = rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3)   # NumPy + SciPy, on the host
+
+A scene of FT3D or a street is a few rigid bodies (the static world seen from a moving sensor is
+one): issue 26, item 2, for pairs without ground or ego-motion structure. From a flow that is
+right on most of each body (the optimiser's):
+1. hypotheses: sequential RANSAC on the flow's correspondences p -> p + flow, each sample drawn
+   among a point's nearest neighbours (a body is local), inliers removed, until too few remain;
+2. each hypothesis refined against pc2 by a robust ICP of its inliers (point-to-plane with a
+   small point-to-point part, so a plane cannot slide along itself), the unrefined motion kept
+   beside it; a refinement that moves its points by more than `max_shift` on average is refused;
+3. each point takes the motion whose moved neighbourhood lies nearest pc2's surfaces (distances
+   to pc2's local planes, truncated, averaged over the point's neighbours in pc1), among the
+   motions its neighbours hold (a body is contiguous), pulled a little towards its starting flow
+   and towards the largest body (the world) so that ties (a plane sliding along itself) do not
+   jump; motions are refitted to the points they won and the points reassigned (`em_rounds`);
+4. per-point freedom where no rigid motion fits: a point whose best motion fits worse than its
+   starting flow by more than `free_margin` keeps the starting flow.
+Seeded: the same input gives the same flow. Settings were chosen on 7 of the 21 shared FT3D
+pairs, the KITTI sample and 4 val pairs each of synthetic_lidar and synthetic_things
+(benchmarks/METHODS.md).
+"""
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from jaxflow import ego, rigid
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+  inlier: float = 0.08  # metres: a correspondence this near a hypothesis supports it
+  trials: int = 150  # RANSAC samples a hypothesis
+  local: int = 32  # a sample's three points come from one point's this many nearest neighbours
+  min_support: int = 30  # points: a smaller hypothesis ends the search
+  max_bodies: int = 25
+  sample: int = 8192  # points at most that the hypotheses are searched on (seeded sample)
+  icp_rounds: int = 20
+  icp_points: int = 4000  # points at most an ICP fits (seeded sample)
+  point_weight: float = 0.1  # of the point-to-point rows beside the point-to-plane ones
+  max_shift: float = 0.5  # metres: a refinement moving its points more than this is refused
+  neighbours: int = 32  # a point's cost is the mean over this many neighbours in pc1
+  truncate: float = 0.3  # metres
+  pull: float = 0.03  # per metre of (neighbourhood mean) departure from the starting flow
+  stick: float = 0.05  # metres of cost: a motion that departs from a point's flow must fit better
+  world: float = 0.02  # metres of cost: any body but the largest (the world) must fit better
+  em_rounds: int = 6
+  free_margin: float = 0.05  # metres: a point keeps its starting flow when rigid fits this worse
+  seed: int = 0
+
+  def __post_init__(self):
+    for name in ("trials", "local", "min_support", "max_bodies", "sample", "icp_points",
+                 "neighbours"):
+      if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+        raise ValueError(f"bodies {name} must be an integer >= 1, got {getattr(self, name)!r}")
+    if self.local < 3:
+      raise ValueError(f"bodies local must be >= 3 (a sample is 3 points), got {self.local}")
+    for name in ("inlier", "truncate", "max_shift"):
+      if not getattr(self, name) > 0:
+        raise ValueError(f"bodies {name} must be > 0, got {getattr(self, name)!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Found:
+  """What rigid_bodies did: hypotheses found, points that kept their starting flow."""
+  bodies: int
+  free_points: int
+  note: str | None = None
+
+
+def _normals(points_Mx3, k: int = 10) -> np.ndarray:
+  """Unit normal of each point's k-neighbourhood (least-spread direction)."""
+  _, idx = cKDTree(points_Mx3).query(points_Mx3, min(k, len(points_Mx3)))
+  centred = points_Mx3[idx] - points_Mx3[idx].mean(1, keepdims=True)
+  return np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1][:, :, 0]
+
+
+class _Target:
+  """pc2 prepared once: its k-d tree and normals."""
+
+  def __init__(self, pc2_Mx3):
+    self.points = pc2_Mx3
+    self.tree = cKDTree(pc2_Mx3)
+    self.normals = _normals(pc2_Mx3)
+
+  def cost(self, moved_Nx3, truncate: float) -> np.ndarray:
+    """Per point: its distance to the plane of the nearest pc2 point (`truncate` when none is
+    within `truncate`). Not the distance to the point: where two sweeps sample a surface at other
+    places (a LiDAR's rings on a facade), that distance favours motions that line the samples up."""
+    d, j = self.tree.query(moved_Nx3, distance_upper_bound=truncate)
+    near = np.isfinite(d)
+    out = np.full(len(d), truncate)
+    out[near] = np.minimum(np.abs(np.sum((moved_Nx3[near] - self.points[j[near]])
+                                         * self.normals[j[near]], 1)), truncate)
+    return out
+
+  def icp(self, src_Kx3, motion, rounds: int, scales, settings: Settings):
+    """Gauss-Newton rounds of the robust point-to-plane (+ point-to-point) fit of src to pc2."""
+    rotation, translation = motion
+    for i in range(rounds):
+      scale = scales[min(i * len(scales) // rounds, len(scales) - 1)]
+      q = src_Kx3 @ rotation.T + translation
+      d, j = self.tree.query(q)
+      n = self.normals[j]
+      diff = q - self.points[j]
+      r = np.sum(diff * n, 1)
+      w = (d < 4 * scale) / (1 + (r / scale) ** 2) ** 2  # Geman-McClure, far matches left out
+      if w.sum() < 6:
+        break
+      jac = np.c_[np.cross(q, n), n]
+      h = jac.T @ (jac * w[:, None]) + 1e-6 * np.eye(6)
+      g = jac.T @ (w * r)
+      wp = settings.point_weight * w
+      for axis in range(3):  # point-to-point rows: d(q_axis) / d(omega, t)
+        e = np.zeros(3)
+        e[axis] = 1.0
+        jac_a = np.c_[np.cross(q, e), np.broadcast_to(e, q.shape)]
+        h += jac_a.T @ (jac_a * wp[:, None])
+        g += jac_a.T @ (wp * diff[:, axis])
+      step = -np.linalg.solve(h, g)
+      d_rot = ego.rotation_from_vector(step[:3])
+      rotation, translation = d_rot @ rotation, d_rot @ translation + step[3:]
+    start = src_Kx3 @ motion[0].T + motion[1]
+    if np.linalg.norm(src_Kx3 @ rotation.T + translation - start, axis=1).mean() > \
+        settings.max_shift or not np.all(np.isfinite(rotation)):
+      return motion
+    return rotation, translation
+
+
+def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng) -> list:
+  """Sequential local RANSAC on p -> p + flow: [(rotation, translation, inlier indices)]."""
+  target = pc1_Nx3 + flow_Nx3
+  local = min(settings.local, len(pc1_Nx3))
+  _, nbr_NxK = cKDTree(pc1_Nx3).query(pc1_Nx3, local)
+  remaining, found = np.arange(len(pc1_Nx3)), []
+  while len(remaining) >= settings.min_support and len(found) < settings.max_bodies:
+    left = np.zeros(len(pc1_Nx3), bool)
+    left[remaining] = True
+    best, best_count = None, 0
+    for _ in range(settings.trials):
+      seed = rng.choice(remaining)
+      near = nbr_NxK[seed][left[nbr_NxK[seed]]]
+      if len(near) < 3:
+        continue
+      pick = rng.choice(near, 3, replace=False)
+      m = rigid.kabsch(pc1_Nx3[pick], target[pick])
+      count = int((np.linalg.norm(m.apply(pc1_Nx3[remaining]) - target[remaining], axis=1)
+                   < settings.inlier).sum())
+      if count > best_count:
+        best, best_count = m, count
+    if best is None or best_count < settings.min_support:
+      break
+    for _ in range(3):  # refit to the inliers
+      inliers = remaining[np.linalg.norm(best.apply(pc1_Nx3[remaining]) - target[remaining],
+                                         axis=1) < settings.inlier]
+      if len(inliers) < 3:
+        break
+      best = rigid.kabsch(pc1_Nx3[inliers], target[inliers])
+    found.append((best.rotation, best.translation, inliers))
+    remaining = np.setdiff1d(remaining, inliers)
+  return found
+
+
+def _subset(indices, most: int, rng):
+  return indices if len(indices) <= most else np.sort(rng.choice(indices, most, replace=False))
+
+
+def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
+  """(flow N x 3 float32, Found): `flow_Nx3` made piecewise rigid where rigid motions fit pc2
+  (module docstring). A flow that is not finite, or too few points, is returned unchanged with a
+  note."""
+  pc1, pc2 = np.asarray(pc1_Nx3, np.float64), np.asarray(pc2_Mx3, np.float64)
+  flow = np.asarray(flow_Nx3, np.float64)
+  if not np.all(np.isfinite(flow)) or not np.all(np.isfinite(pc1)) or \
+      not np.all(np.isfinite(pc2)):
+    return flow.astype(np.float32), Found(0, len(pc1), "bodies: a non-finite input; the flow is "
+                                                      "returned unchanged")
+  if min(len(pc1), len(pc2)) < max(settings.min_support, 10):
+    return flow.astype(np.float32), Found(0, len(pc1), f"bodies: {len(pc1)} and {len(pc2)} "
+                                          "points are too few for rigid bodies; the flow is "
+                                          "returned unchanged")
+  rng = np.random.default_rng(settings.seed)
+  sample = _subset(np.arange(len(pc1)), settings.sample, rng)
+  found = hypotheses(pc1[sample], flow[sample], settings, rng)
+  if not found:
+    return flow.astype(np.float32), Found(0, len(pc1), "bodies: no rigid motion has support; "
+                                                      "the flow is returned unchanged")
+  target = _Target(pc2)
+  coarse = (0.2, 0.1, 0.05, 0.03)
+  motions = [target.icp(pc1[sample[_subset(inl, settings.icp_points, rng)]], (r, t),
+                        settings.icp_rounds, coarse, settings) for r, t, inl in found]
+  motions += [(r, t) for r, t, _ in found]  # the unrefined motions stay candidates
+  _, nbr_NxK = cKDTree(pc1).query(pc1, min(settings.neighbours, len(pc1)))
+  # A body is contiguous: a point may take only a motion that a neighbour takes (at first, one
+  # whose hypothesis the neighbour supported in the starting flow).
+  label_N = np.full(len(pc1), -1)
+  for h, (_, _, inl) in enumerate(found):
+    label_N[sample[inl]] = h
+  label_N = np.where(label_N >= 0, label_N, len(found))  # unsupported: any motion
+  smooth = lambda per_point_N: per_point_N[nbr_NxK].mean(1)
+  start_cost = smooth(target.cost(pc1 + flow, settings.truncate))
+  for round_ in range(settings.em_rounds + 1):
+    cost_NxH = np.empty((len(pc1), len(motions)))
+    choice_NxH = np.empty_like(cost_NxH)
+    for h, (r, t) in enumerate(motions):
+      moved = pc1 @ r.T + t
+      cost_NxH[:, h] = smooth(target.cost(moved, settings.truncate))
+      departure = np.minimum(np.linalg.norm(moved - pc1 - flow, axis=1), 1.0)
+      choice_NxH[:, h] = (cost_NxH[:, h] + settings.pull * smooth(departure)
+                          + settings.stick * (departure > settings.inlier)
+                          + settings.world * (h % len(found) != 0))
+    held = np.zeros((len(pc1), len(found) + 1), bool)
+    held[np.arange(len(pc1))[:, None], label_N[nbr_NxK]] = True
+    allowed = held[:, np.arange(len(motions)) % len(found)] | held[:, -1:]
+    best_N = np.argmin(np.where(allowed, choice_NxH, np.inf), 1)
+    label_N = best_N % len(found)
+    if round_ == settings.em_rounds:
+      break
+    motions = [target.icp(pc1[_subset(np.flatnonzero(best_N == h), settings.icp_points, rng)],
+                          m, 10, (0.05, 0.03), settings)
+               if (best_N == h).sum() >= 10 else m for h, m in enumerate(motions)]
+  rotations = np.stack([r for r, _ in motions])[best_N]
+  translations = np.stack([t for _, t in motions])[best_N]
+  out = np.einsum("nij,nj->ni", rotations, pc1) + translations - pc1
+  free = cost_NxH[np.arange(len(pc1)), best_N] > start_cost + settings.free_margin
+  out[free] = flow[free]
+  return out.astype(np.float32), Found(len(found), int(free.sum()))
