@@ -130,11 +130,12 @@ class _Target:
     return rotation, translation
 
 
-def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng) -> list:
-  """Sequential local RANSAC on p -> p + flow: [(rotation, translation, inlier indices)]."""
+def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None) -> list:
+  """Sequential local RANSAC on p -> p + flow: [(rotation, translation, inlier indices)].
+  `nbr_NxK`: each point's `settings.local` nearest (searched when not given)."""
   target = pc1_Nx3 + flow_Nx3
-  local = min(settings.local, len(pc1_Nx3))
-  _, nbr_NxK = cKDTree(pc1_Nx3).query(pc1_Nx3, local)
+  if nbr_NxK is None:
+    _, nbr_NxK = cKDTree(pc1_Nx3).query(pc1_Nx3, min(settings.local, len(pc1_Nx3)))
   remaining, found = np.arange(len(pc1_Nx3)), []
   while len(remaining) >= settings.min_support and len(found) < settings.max_bodies:
     left = np.zeros(len(pc1_Nx3), bool)
@@ -184,7 +185,9 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
                                           "returned unchanged")
   rng = np.random.default_rng(settings.seed)
   sample = _subset(np.arange(len(pc1)), settings.sample, rng)
-  found = hypotheses(pc1[sample], flow[sample], settings, rng)
+  _, nbr_NxK = cKDTree(pc1).query(pc1, min(settings.neighbours, len(pc1)))
+  whole = len(sample) == len(pc1) and settings.local == settings.neighbours  # one search serves
+  found = hypotheses(pc1[sample], flow[sample], settings, rng, nbr_NxK if whole else None)
   if not found:
     return flow.astype(np.float32), Found(0, len(pc1), "bodies: no rigid motion has support; "
                                                       "the flow is returned unchanged")
@@ -193,7 +196,6 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   motions = [target.icp(pc1[sample[_subset(inl, settings.icp_points, rng)]], (r, t),
                         settings.icp_rounds, coarse, settings) for r, t, inl in found]
   motions += [(r, t) for r, t, _ in found]  # the unrefined motions stay candidates
-  _, nbr_NxK = cKDTree(pc1).query(pc1, min(settings.neighbours, len(pc1)))
   # A body is contiguous: a point may take only a motion that a neighbour takes (at first, one
   # whose hypothesis the neighbour supported in the starting flow).
   label_N = np.full(len(pc1), -1)
