@@ -15,6 +15,7 @@ spellings and renamed flags are refused with the new name (`RENAMED`).
 The options predict and evaluate.py share mean the same in both (`define_run_flags`).
 """
 
+import logging as pylogging
 import os
 import sys
 import warnings
@@ -49,14 +50,16 @@ def _drop_closed_loop_reports():
   When one array of a checkpoint cannot be read, orbax raises (a CheckpointError here) and closes
   its event loop while tensorstore's reads of the other arrays are still running; each of them then
   reports a RuntimeError into the closed loop as an unraisable exception, a traceback after the
-  one-line error, and the coroutines it abandons warn at exit that they were never awaited. The
-  failure itself has been raised; these reports add nothing.
+  one-line error, the coroutines it abandons warn at exit that they were never awaited, and the
+  reads that failed too log "Task exception was never retrieved" when garbage collected (at any
+  time, often at exit). The failure itself has been raised; these reports add nothing.
   """
   warnings.filterwarnings("ignore", message=r"coroutine '.*' was never awaited",
                           category=RuntimeWarning)
   previous = sys.unraisablehook
   if getattr(previous, "drops_closed_loop_reports", False):
     return  # installed by an earlier call
+  pylogging.getLogger("asyncio").addFilter(_keep_unless_abandoned_read)
 
   def hook(unraisable):
     e = unraisable.exc_value
@@ -65,6 +68,12 @@ def _drop_closed_loop_reports():
 
   hook.drops_closed_loop_reports = True
   sys.unraisablehook = hook
+
+
+def _keep_unless_abandoned_read(record: pylogging.LogRecord) -> bool:
+  text = record.getMessage()
+  return not (text.startswith("Task exception was never retrieved")
+              and "coro=<async_deserialize()" in text)
 
 
 def guard(main: Callable[..., Any], *args, **kwargs):

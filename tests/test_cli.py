@@ -49,6 +49,33 @@ def test_guard_passes_results_and_bugs_through():
     cli.guard(lambda: 1 / 0)
 
 
+ABANDONED_READ = textwrap.dedent("""
+  # An orbax read that failed beside the one raised, collected after its loop closed.
+  import asyncio, gc
+  from jaxflow import cli
+  from jaxflow.errors import CheckpointError
+  async def async_deserialize():
+    raise ValueError("OUT_OF_RANGE: /x/ckpt/1/state")
+  def main():
+    loop = asyncio.new_event_loop()
+    task = loop.create_task(async_deserialize())
+    loop.run_until_complete(asyncio.sleep(0.01))
+    loop.close()
+    del task
+    gc.collect()
+    raise CheckpointError("/x/ckpt/1: cannot restore the train state")
+  cli.guard(main)
+""")
+
+
+def test_abandoned_orbax_reads_add_nothing_after_the_one_line():
+  proc = python(script=ABANDONED_READ)
+  assert_one_line_error(proc, "cannot restore the train state")
+  # Other asyncio errors still reach the user.
+  proc = python(script=ABANDONED_READ.replace("async_deserialize", "user_coroutine"))
+  assert "Task exception was never retrieved" in proc.stderr and proc.returncode == 2
+
+
 ABSL_MAIN = textwrap.dedent("""
   from absl import flags
   from jaxflow import cli
