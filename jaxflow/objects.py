@@ -5,11 +5,12 @@
 With the sensor's motion known (jaxflow.ego), pc2 is brought into pc1's frame: the static world
 then overlaps itself and every moving thing does not. The non-ground points below OBJECT_TOP
 above the ground are grouped into objects by connectivity seen from above (cells of CELL); each
-object with enough unexplained points gets motions from several starts (standing still, the
-caller's flow, e.g. the network's, fitted rigidly, and the best translation of a search over
-+-SEARCH m), each refined by a bird's-eye ICP (yaw and translation; its height follows the
-ground), and keeps the motion that fits pc2 best, standing still unless another fits clearly
-better. Points no object claims keep the ego-motion. All in z-up coordinates, frame 1.
+object with enough unexplained points (a share of its points, or a count) gets motions from
+several starts (standing still, the caller's flow, e.g. the network's, fitted rigidly, and the best
+translation of a search over +-SEARCH m), each refined by a bird's-eye ICP (yaw and translation;
+its height follows the ground), and keeps the motion that fits pc2 best, standing still unless
+another fits clearly better. Points no object claims keep the ego-motion. All in z-up
+coordinates, frame 1.
 """
 
 import dataclasses
@@ -22,11 +23,13 @@ from jaxflow import ego, rigid
 
 CELL = 0.3  # metres: objects are connected cells seen from above (gaps of a cell bridged)
 OBJECT_TOP = 2.6  # metres above the ground: higher points (crowns, facades' tops) join no object
-MIN_POINTS = 16
+MIN_POINTS = 12
 MAX_HIGH = 0.25  # an object with more of its points above OBJECT_TOP is structure, not a vehicle
 MAX_SIZE = 14.0  # metres: a larger group is structure (a facade), never moved
 UNEXPLAINED = 0.15  # metres: a point this far from ego-compensated pc2 (seen from above)
 MIN_UNEXPLAINED = 0.15  # an object with fewer unexplained points than this share stands still
+MANY_UNEXPLAINED = 100  # ... unless it has this many (a car beside the sensor, sliding along its
+# own side, is explained but at its ends)
 SEARCH, SEARCH_STEP = 3.5, 0.25  # metres: the translation search of an object (3 m a frame)
 TRUNCATE = 0.3  # metres: a point's cost is its 3-D distance to pc2, at most this
 SPACINGS, MAX_TRUNCATE = 3.0, 1.5  # ... or this many of the object's point spacings (m, at most)
@@ -39,6 +42,7 @@ LOW_GROUND = 0.05  # metres: "ground" points this high inside a moving object's 
 ROUNDS = 15
 AZIMUTH_BINS, ELEVATION_BINS = 1200, 360  # the visibility image: 0.3 x 0.5 degrees
 HIDDEN = 0.5  # metres: a point this far behind pc2's return in its direction is hidden
+HIDDEN_FIT = 0.45  # ... and a motion of an object hidden when still must fit this well
 MIN_SEEN = 0.3  # a motion that leaves fewer of an object's points visible in pc2 is refused
 
 
@@ -135,9 +139,15 @@ def _mean(costs) -> float:
 
 def _better(still, moved) -> bool:
   """Whether a motion's costs beat standing still's clearly: by MARGIN, by RELATIVE_MARGIN of
-  still's cost, and by SIGNIFICANCE standard errors of the paired difference."""
+  still's cost, and by SIGNIFICANCE standard errors of the paired difference; where pc2 cannot see
+  the object standing still (a car come nearer along the line of sight hides its old place), the
+  motion alone must fit within HIDDEN_FIT."""
+  if _mean(moved) >= 1.0:
+    return False
+  if np.isfinite(still).mean() < MIN_SEEN:  # standing still, pc2 cannot see it: no evidence
+    return _mean(moved) <= HIDDEN_FIT  # either way; the motion must fit on its own
   both = np.isfinite(still) & np.isfinite(moved)
-  if both.sum() < MIN_POINTS // 2 or _mean(moved) >= 1.0:
+  if both.sum() < MIN_POINTS // 2:
     return False
   diff = still[both] - moved[both]
   gain = diff.mean()
@@ -207,7 +217,8 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   bounds = np.searchsorted(label[order], np.arange(count + 1))
   for k in range(count):
     idx = order[bounds[k]:bounds[k + 1]]
-    if len(idx) < MIN_POINTS or unexplained[idx].mean() < MIN_UNEXPLAINED:
+    if len(idx) < MIN_POINTS or (unexplained[idx].mean() < MIN_UNEXPLAINED
+                                 and unexplained[idx].sum() < MANY_UNEXPLAINED):
       continue
     pts = pc1[idx]
     if np.ptp(pts[:, :2], axis=0).max() > MAX_SIZE or (height[idx] > OBJECT_TOP).mean() > MAX_HIGH:

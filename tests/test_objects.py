@@ -56,3 +56,45 @@ def test_two_cars_moving_differently_get_two_motions():
   assert len(found.moved) == 2
   shifts = [m[1] for m in found.moved]
   assert np.linalg.norm(shifts[0] - shifts[1]) > 1.0  # two different motions
+
+
+def _visible_faces(rng, centre, size, n, faces):
+  """n points on the named faces of a box standing on z = 0 ("-x", "+y", "top", ...)."""
+  pts = rng.uniform(-0.5, 0.5, (n, 3)) * size
+  which = rng.integers(0, len(faces), n)
+  for i, face in enumerate(faces):
+    axis = {"x": 0, "y": 1, "top": 2}[face.lstrip("+-")]
+    pts[which == i, axis] = (-0.5 if face.startswith("-") else 0.5) * size[axis]
+  return pts + [centre[0], centre[1], size[2] / 2]
+
+
+def test_a_car_beside_the_sensor_sliding_along_its_own_side_is_moved():
+  """Seen only from its side, 0.6 m along itself: all but its ends' points are explained by the
+  standing-still car (the plane slides along itself), but those are hundreds of points."""
+  size = np.array([4.5, 1.8, 1.5])
+  pc1 = _visible_faces(np.random.default_rng(0), (0.0, 3.0), size, 4000, ["-y", "top"])
+  pc2 = _visible_faces(np.random.default_rng(1), (0.6, 3.0), size, 4000, ["-y", "top"])
+  still = rigid.Motion(np.eye(3), np.zeros(3))
+  flow, found = objects.object_flow(pc1, pc2, np.zeros(len(pc1), bool), np.zeros(len(pc2), bool),
+                                    still)
+  assert len(found.moved) == 1
+  # Within the search's 0.125 m step along the side, which no fit to the side can refine (standing
+  # still is 0.6 m off).
+  assert np.linalg.norm(flow - [0.6, 0, 0], axis=1).mean() <= 0.15
+
+
+def test_a_car_hidden_in_pc2_where_it_stood_still_is_moved_when_its_motion_fits():
+  """Coming 1.5 m nearer along the line of sight: where it stood, pc2's rays stop at its new
+  front, so standing still is neither seen nor refuted; the fitting motion is taken."""
+  rng = np.random.default_rng(2)
+  size = np.array([4.5, 1.8, 1.5])
+  wall = lambda r: np.c_[np.full(3000, 60.0), r.uniform(-30, 30, 3000), r.uniform(0, 6, 3000)]
+  pc1 = np.concatenate([_visible_faces(rng, (30.0, 0.5), size, 100, ["-x"]), wall(rng)])
+  # pc2 dense (a near face): each direction of the old place meets its new front.
+  pc2 = np.concatenate([_visible_faces(rng, (28.5, 0.5), size, 2000, ["-x"]), wall(rng)])
+  still = rigid.Motion(np.eye(3), np.zeros(3))
+  flow, found = objects.object_flow(pc1, pc2, np.zeros(len(pc1), bool), np.zeros(len(pc2), bool),
+                                    still)
+  assert len(found.moved) == 1
+  assert np.linalg.norm(flow[:100] - [-1.5, 0, 0], axis=1).mean() < 0.15
+  np.testing.assert_array_equal(flow[100:], 0.0)  # the wall stays
