@@ -122,6 +122,16 @@ def requested_model_fields(config_flag) -> list[str]:
   return sorted(given)
 
 
+def define_process_flags():
+  """--coordinator, --num_processes and --process_id of train.py and evaluate.py (read by
+  `distributed.initialize_from_flags`; defined here, without jax, so that --print_config and --help
+  answer before jax loads)."""
+  flags.DEFINE_string(
+    "coordinator", None, "HOST:PORT of process 0, for a run over many processes (hosts or GPUs).")
+  flags.DEFINE_integer("num_processes", None, "Number of processes in the run.")
+  flags.DEFINE_integer("process_id", None, "This process's index, 0 .. N-1.")
+
+
 def define_run_flags(default_method: str):
   """The flags predict and evaluate.py share, with one meaning in both: --method, --steps,
   --objective, --iters, --max_points, --full, --corr_chunk, --seed, --save_flows."""

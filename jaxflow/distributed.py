@@ -1,5 +1,6 @@
-"""Many processes on JAX's own runtime: flags, `jax.distributed.initialize`, and the few helpers
-training and evaluation need (the global mesh, each process's rows of a global batch, reductions).
+"""Many processes on JAX's own runtime: `jax.distributed.initialize` (from the flags that
+`cli.define_process_flags` defines) and the few helpers training and evaluation need (the global
+mesh, each process's rows of a global batch, reductions).
 
 One process per host (or per GPU) runs the same command with its own `--process_id`:
 
@@ -21,15 +22,6 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
 from jaxflow.errors import ConfigError
-
-def define_flags():
-  """--coordinator, --num_processes and --process_id (for train.py and evaluate.py; a library
-  import defines no flag)."""
-  flags.DEFINE_string(
-    "coordinator", None, "HOST:PORT of process 0, for a run over many processes (hosts or GPUs).")
-  flags.DEFINE_integer("num_processes", None, "Number of processes in the run.")
-  flags.DEFINE_integer("process_id", None, "This process's index, 0 .. N-1.")
-
 
 def detected_cluster() -> str | None:
   """The multi-process launcher found in the environment (that `jax.distributed.initialize()`

@@ -30,7 +30,7 @@ def _define_flags():
   from absl import flags  # pylint: disable=import-outside-toplevel
   from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
 
-  distributed.define_flags()
+  cli.define_process_flags()
   config_flags.DEFINE_config_file(
     "config", cli.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True)
   flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "

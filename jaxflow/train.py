@@ -13,14 +13,14 @@ of that name when the working directory has none.
 import sys
 from pathlib import Path
 
-from jaxflow import cli, distributed, run_log, training
+from jaxflow import cli
 
 
 def _define_flags():
   from absl import flags  # pylint: disable=import-outside-toplevel
   from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
 
-  distributed.define_flags()
+  cli.define_process_flags()
   flags.DEFINE_string("workdir", None, "Folder for checkpoints, metrics and results.")
   config_flags.DEFINE_config_file("config", None, "Training config file (FILE.py[:ARG]; "
                                   "--print_config lists its fields).", lock_config=True)
@@ -45,6 +45,8 @@ def written(workdir) -> str:
 
 def main(argv):
   from absl import flags  # pylint: disable=import-outside-toplevel
+  # Here, not at the top: --print_config and --help answer without loading jax.
+  from jaxflow import distributed, run_log, training  # pylint: disable=import-outside-toplevel
 
   if len(argv) > 1:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")

@@ -159,6 +159,18 @@ def test_print_config_lists_every_field_with_its_comment():
   assert "config.model.knn = 8  # neighbours of each point in its own cloud" in proc.stdout
 
 
+def test_print_config_and_help_of_train_py_answer_without_loading_jax():
+  for flag in ("--print_config", "--help"):
+    proc = python(script=textwrap.dedent(f"""
+      import atexit, sys
+      atexit.register(lambda: print("jax loaded:", "jax" in sys.modules, file=sys.stderr))
+      sys.argv = ["train.py", "--config", "configs/default.py", "{flag}"]
+      from jaxflow import train
+      train.run()
+    """))
+    assert proc.returncode == 0 and "jax loaded: False" in proc.stderr, proc.stderr[-2000:]
+
+
 def test_configs_path_falls_back_to_the_package(tmp_path, monkeypatch):
   monkeypatch.chdir(tmp_path)  # no configs/ here: the package's
   assert configfile.resolve("configs/default.py:smoke") == (

@@ -1,6 +1,7 @@
 """The docs say what the code does: every command of README.md and docs/*.md runs at toy size (or
 is listed below with the reason it cannot), and the Python blocks run as written."""
 
+import concurrent.futures
 import contextlib
 import io
 import os
@@ -160,29 +161,36 @@ def toy_args(command: str, cwd: Path, checkpoint: Path) -> list[str] | None:
   return None
 
 
-def _start(argv, cwd):
+def _run(argv, cwd):
   env = {**os.environ, "JAX_PLATFORMS": "cpu",
          "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-  return subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                          text=True)
+  p = subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
+  return p.returncode, p.stdout, p.stderr
 
 
-def _wait(procs):
-  return {k: (p.wait(timeout=900), *p.communicate()) for k, p in procs.items()}
+# Two commands at a time: all ~35 at once (each a jax process of ~1-2.5 GB) crowd a 2-core
+# machine and slow the other xdist worker's tests.
+PARALLEL = 2
+
+
+def _run_all(jobs: dict) -> dict:
+  """{key: (returncode, stdout, stderr)} of {key: (argv, cwd)}, PARALLEL at a time."""
+  with concurrent.futures.ThreadPoolExecutor(PARALLEL) as pool:
+    futures = {k: pool.submit(_run, argv, cwd) for k, (argv, cwd) in jobs.items()}
+    return {k: f.result() for k, f in futures.items()}
 
 
 @pytest.mark.slow
 def test_every_documented_command_runs_at_toy_size(tmp_path):
   commands = [(w, c) for w, c in every_command() if plan(c)[0] != "skip"]
-  checks = {(w, c): _start(shlex.split(c.replace("[", "").replace("]", ""))
-                           + ["--print_config"], ROOT)
-            for w, c in commands if plan(c)[0] == "config"}
   main_job = next(c for _, c in commands if plan(c)[0] == "run" and "train.py" in c)
-  done = _wait({"main": _start(toy_args(main_job, tmp_path, None), tmp_path)})["main"]
+  done = _run(toy_args(main_job, tmp_path, None), tmp_path)
   assert done[0] == 0, done[2][-2000:]  # its toy run is the checkpoint of the other commands
   argv = shlex.split(main_job)
   checkpoint = tmp_path / Path(argv[argv.index("--workdir") + 1]).name
-  runs, seen = {}, set()
+  jobs = {(w, c): (shlex.split(c.replace("[", "").replace("]", "")) + ["--print_config"], ROOT)
+          for w, c in commands if plan(c)[0] == "config"}
+  seen = {tuple(toy_args(main_job, Path("CWD"), checkpoint))}  # the main job ran above
   for i, (where, command) in enumerate(c for c in commands if plan(c[1])[0] == "run"):
     same = tuple(toy_args(command, Path("CWD"), checkpoint))  # (no files written)
     if same in seen:  # e.g. the main job in README.md and docs/training.md: run once
@@ -190,8 +198,8 @@ def test_every_documented_command_runs_at_toy_size(tmp_path):
     seen.add(same)
     cwd = tmp_path / f"cmd{i}"
     cwd.mkdir()
-    runs[(where, command)] = _start(toy_args(command, cwd, checkpoint), cwd)
-  failed = {k: r[2][-1500:] for k, r in {**_wait(checks), **_wait(runs)}.items() if r[0] != 0}
+    jobs[(where, command)] = (toy_args(command, cwd, checkpoint), cwd)
+  failed = {k: r[2][-1500:] for k, r in _run_all(jobs).items() if r[0] != 0}
   assert failed == {}
 
 

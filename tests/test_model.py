@@ -100,7 +100,7 @@ def test_scan_equals_python_loop(cell):
 def test_recomputed_iterations_give_the_same_gradient_with_fewer_stored_activations():
   pc1, pc2 = random_pair(7, n=96, m=96)
   gt = pc2 - pc1
-  params = build_model(small_config()).init(jax.random.PRNGKey(5), pc1, pc2, num_iters=1)["params"]
+  params = init_fn(build_model(small_config()))(pc1, pc2)["params"]
 
   def compiled_grad(remat):
     model = build_model(small_config(remat_iterations=remat))
@@ -110,7 +110,7 @@ def test_recomputed_iterations_give_the_same_gradient_with_fewer_stored_activati
 
   stored, recomputed = compiled_grad(False), compiled_grad(True)
   for a, b in zip(jax.tree.leaves(recomputed(params)), jax.tree.leaves(stored(params))):
-    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(b))))
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * float(np.max(np.abs(b))))
   temp = lambda f: f.memory_analysis().temp_size_in_bytes
   assert temp(recomputed) < 0.8 * temp(stored), (temp(recomputed), temp(stored))
 
