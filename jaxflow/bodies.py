@@ -15,8 +15,13 @@ right on most of each body (the optimiser's):
    motions its neighbours hold (a body is contiguous), pulled a little towards its starting flow
    and towards the largest body (the world) so that ties (a plane sliding along itself) do not
    jump; motions are refitted to the points they won and the points reassigned (`em_rounds`);
+   a body whose points the world's motion fits as well (on the points pc2 would see, `View`)
+   joins the world; so does one the world's motion takes out of pc2's view when its own motion
+   is a slide of the world's along its surfaces (a facade leaving a camera's view, dragged along
+   itself onto what pc2 still sees: nothing refutes the world's motion there);
 4. per-point freedom where no rigid motion fits: a point whose best motion fits worse than its
-   starting flow by more than `free_margin` keeps the starting flow.
+   starting flow by more than `free_margin` keeps the starting flow, unless its best motion takes
+   it out of pc2's view (there a starting flow that fits is a point dragged onto what pc2 saw).
 Seeded: the same input gives the same flow. Settings were chosen on 7 of the 21 shared FT3D
 pairs, the KITTI sample and 4 val pairs each of synthetic_lidar and synthetic_things
 (benchmarks/METHODS.md).
@@ -49,6 +54,12 @@ class Settings:
   world: float = 0.02  # metres of cost: any body but the largest (the world) must fit better
   em_rounds: int = 6
   free_margin: float = 0.05  # metres: a point keeps its starting flow when rigid fits this worse
+  merge: float = 0.02  # metres of cost: a body the world's motion fits this well joins the world
+  min_seen: float = 0.3  # ... judged on the points pc2 would see moved so; fewer seen: no judging
+  slide: float = 0.1  # a body off pc2's view under the world's motion joins it when its own motion
+  # departs from the world's along its surfaces (|normal part| / departure below this: a slide)
+  hidden: float = 0.5  # metres: a point this far behind pc2's nearest return in its direction
+  view_bin_deg: float = 1.0  # degrees: pc2's directions binned (its nearest return per bin)
   seed: int = 0
 
   def __post_init__(self):
@@ -58,7 +69,7 @@ class Settings:
         raise ValueError(f"bodies {name} must be an integer >= 1, got {getattr(self, name)!r}")
     if self.local < 3:
       raise ValueError(f"bodies local must be >= 3 (a sample is 3 points), got {self.local}")
-    for name in ("inlier", "truncate", "max_shift"):
+    for name in ("inlier", "truncate", "max_shift", "hidden", "view_bin_deg"):
       if not getattr(self, name) > 0:
         raise ValueError(f"bodies {name} must be > 0, got {getattr(self, name)!r}")
 
@@ -76,6 +87,77 @@ def _normals(points_Mx3, k: int = 10) -> np.ndarray:
   _, idx = cKDTree(points_Mx3).query(points_Mx3, min(k, len(points_Mx3)))
   centred = points_Mx3[idx] - points_Mx3[idx].mean(1, keepdims=True)
   return np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1][:, :, 0]
+
+
+SEEN, HIDDEN, OUTSIDE = range(3)
+
+
+class View:
+  """What pc2's sensor (at the origin, y up, z forward: the model frame) saw: its nearest return
+  per direction, and the extent of its view (azimuth, elevation, range). A moved pc1 point is
+  SEEN (pc2 looked at least that far there, an empty direction inside the view included),
+  HIDDEN (behind a nearer return) or OUTSIDE the view (a camera's edge, the range cut)."""
+
+  def __init__(self, pc2_Mx3, bin_deg: float = 1.0, hidden: float = 0.5):
+    self.bin_deg, self.hidden = bin_deg, hidden
+    self.columns, self.rows = int(np.ceil(360 / bin_deg)), int(np.ceil(180 / bin_deg))
+    self.nearest = np.full(self.columns * self.rows, np.inf)
+    key, r, azimuth, elevation = self._directions(pc2_Mx3)
+    np.minimum.at(self.nearest, key, r)
+    self.extent = (*np.quantile(azimuth, [0.001, 0.999]), *np.quantile(elevation, [0.001, 0.999]),
+                   r.max())
+
+  def _directions(self, points_Kx3):
+    r = np.linalg.norm(points_Kx3, axis=1)
+    azimuth = np.degrees(np.arctan2(points_Kx3[:, 0], points_Kx3[:, 2]))
+    elevation = np.degrees(np.arcsin(np.clip(points_Kx3[:, 1] / np.maximum(r, 1e-9), -1, 1)))
+    i = np.clip(((azimuth + 180) / self.bin_deg).astype(np.int64), 0, self.columns - 1)
+    j = np.clip(((elevation + 90) / self.bin_deg).astype(np.int64), 0, self.rows - 1)
+    return i * self.rows + j, r, azimuth, elevation
+
+  def state(self, moved_Kx3) -> np.ndarray:
+    """SEEN, HIDDEN or OUTSIDE for each point (in frame 2's coordinates)."""
+    key, r, azimuth, elevation = self._directions(moved_Kx3)
+    lo_az, hi_az, lo_el, hi_el, far = self.extent
+    outside = (azimuth < lo_az) | (azimuth > hi_az) | (elevation < lo_el) | (elevation > hi_el) | (
+      r > far)
+    return np.where(outside, OUTSIDE, np.where(self.nearest[key] < r - self.hidden, HIDDEN, SEEN))
+
+
+def _slides(points_Kx3, normals_Kx3, motion, world, most: float) -> bool:
+  """Whether `motion` departs from `world` along the points' surfaces (a plane sliding along
+  itself, which pc2 cannot tell from standing on it): the median |normal part| / departure is
+  below `most`."""
+  departure = (points_Kx3 @ motion[0].T + motion[1]) - (points_Kx3 @ world[0].T + world[1])
+  across = np.abs(np.sum(departure * normals_Kx3, 1))
+  return bool(np.median(across / np.maximum(np.linalg.norm(departure, axis=1), 1e-9)) < most)
+
+
+def _join_world(best_N, motions, bodies_found, pc1, normals_Nx3, target, view, settings):
+  """best_N with every body moved to the world (motion 0) that the world's motion explains as well
+  as its own: judged on the points pc2 would see under the world's motion when `min_seen` of them
+  are; when it takes most of them out of pc2's view, the body joins if its own motion is a slide
+  of the world's. A body mostly hidden under the world's motion keeps its own."""
+  world = motions[0]
+  moved = pc1 @ world[0].T + world[1]
+  state = view.state(moved)
+  world_cost = target.cost(moved, settings.truncate)
+  out = best_N.copy()
+  for h in np.unique(best_N):
+    if h % bodies_found == 0:
+      continue
+    pts = np.flatnonzero(best_N == h)
+    seen = state[pts] == SEEN
+    if seen.mean() >= settings.min_seen:
+      r, t = motions[h]
+      own = target.cost(pc1[pts[seen]] @ r.T + t, settings.truncate)
+      joins = world_cost[pts[seen]].mean() <= own.mean() + settings.merge
+    else:
+      joins = (state[pts] == OUTSIDE).mean() >= 0.5 and _slides(
+        pc1[pts], normals_Nx3[pts], motions[h], world, settings.slide)
+    if joins:
+      out[pts] = 0
+  return out
 
 
 class _Target:
@@ -192,6 +274,8 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
     return flow.astype(np.float32), Found(0, len(pc1), "bodies: no rigid motion has support; "
                                                       "the flow is returned unchanged")
   target = _Target(pc2)
+  view = View(pc2, settings.view_bin_deg, settings.hidden)
+  normals1 = _normals(pc1)
   coarse = (0.2, 0.1, 0.05, 0.03)
   motions = [target.icp(pc1[sample[_subset(inl, settings.icp_points, rng)]], (r, t),
                         settings.icp_rounds, coarse, settings) for r, t, inl in found]
@@ -218,6 +302,7 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
     held[np.arange(len(pc1))[:, None], label_N[nbr_NxK]] = True
     allowed = held[:, np.arange(len(motions)) % len(found)] | held[:, -1:]
     best_N = np.argmin(np.where(allowed, choice_NxH, np.inf), 1)
+    best_N = _join_world(best_N, motions, len(found), pc1, normals1, target, view, settings)
     label_N = best_N % len(found)
     if round_ == settings.em_rounds:
       break
@@ -227,6 +312,8 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   rotations = np.stack([r for r, _ in motions])[best_N]
   translations = np.stack([t for _, t in motions])[best_N]
   out = np.einsum("nij,nj->ni", rotations, pc1) + translations - pc1
-  free = cost_NxH[np.arange(len(pc1)), best_N] > start_cost + settings.free_margin
+  # Out of pc2's view, a good fit of the starting flow is a point dragged onto what pc2 saw.
+  free = (cost_NxH[np.arange(len(pc1)), best_N] > start_cost + settings.free_margin) & (
+    view.state(pc1 + out) != OUTSIDE)
   out[free] = flow[free]
   return out.astype(np.float32), Found(len(found), int(free.sum()))

@@ -101,6 +101,79 @@ def test_where_no_rigid_motion_fits_the_starting_flow_is_kept():
   assert np.linalg.norm(flow - truth, axis=1).mean() < 0.25 * np.linalg.norm(truth, axis=1).mean()
 
 
+VIEW = 0.6  # |x / z| the camera of the street pairs sees
+STREET_WORLD = (_rotation([0, 1, 0], 1.0), np.array([0.0, 0.0, -1.5]))
+BOX_MOVE = np.array([-1.2, 0.0, 1.5])  # seen from the world: across the view and along it
+
+
+def _street(n, rng):
+  """A street before a forward camera (x left, y up, z forward): two facades along it, a far
+  wall, two poles and a box near the left edge of the view; (points, 0 world / 1 box)."""
+  along = lambda x: np.c_[np.full(n, x), rng.uniform(-1.4, 2.5, n), rng.uniform(2.5, 30, n)]
+  far = np.c_[rng.uniform(-4, 4, n // 2), rng.uniform(-1.4, 2.5, n // 2), np.full(n // 2, 30.0)]
+  poles = []
+  for x, z in ((1.5, 12.0), (-2.0, 18.0)):
+    a = rng.uniform(0, 2 * np.pi, n // 8)
+    poles.append(np.c_[x + 0.15 * np.cos(a), rng.uniform(-1.4, 2.5, n // 8),
+                       z + 0.15 * np.sin(a)])
+  box = _box_surface([2.6, -0.6, 4.5], [1.0, 1.2, 1.0], n // 2, rng)
+  points = np.concatenate([along(4.0), along(-4.0), far, *poles, box])
+  return points, np.repeat([0, 1], [len(points) - len(box), len(box)])
+
+
+def _street_pair(seed=0, n=3000):
+  """Independent samplings of the street in each frame, each cut to the camera's view; the
+  camera moves 1.5 m forward and turns 1 degree, the box moves by BOX_MOVE besides."""
+  rng = np.random.default_rng(seed)
+  (r, t), (pc1, part1), (pc2, part2) = STREET_WORLD, _street(n, rng), _street(n, rng)
+  pc2 = pc2 @ r.T + t + np.outer(part2 == 1, BOX_MOVE)
+  truth = pc1 @ r.T + t - pc1 + np.outer(part1 == 1, BOX_MOVE)
+  in1, in2 = np.abs(pc1[:, 0]) <= VIEW * pc1[:, 2], np.abs(pc2[:, 0]) <= VIEW * pc2[:, 2]
+  return pc1[in1], pc2[in2], truth[in1], part1[in1]
+
+
+def test_a_facade_dragged_along_itself_out_of_the_view_takes_the_world_motion():
+  """The near end of a facade leaves the camera's view; a Chamfer optimiser drags it 4 m along
+  the facade onto what pc2 still sees, where it fits perfectly. Nothing pc2 saw refutes the
+  world's motion there, and the departure is a slide: the world's motion it is."""
+  pc1, pc2, truth, part = _street_pair()
+  moved = pc1 + truth
+  dragged = (np.abs(moved[:, 0]) > VIEW * moved[:, 2]) & (part == 0)
+  start = truth + np.outer(dragged, [0.0, 0.0, 4.0])
+  flow, _ = bodies.rigid_bodies(pc1, pc2, start)
+  error = np.linalg.norm(flow - truth, axis=1)
+  assert dragged.sum() > 200
+  assert error[dragged].mean() < 0.15  # the world's motion, as fitted (was 3.98: the drag kept)
+  assert error[part == 1].mean() < 0.02
+
+
+def test_a_box_out_of_the_view_only_under_the_world_motion_keeps_its_own():
+  """The box comes into view by its own motion: the world's motion would take all of it out of
+  pc2's view, where nothing refutes it, but the box's motion is no slide of the world's."""
+  pc1, pc2, truth, part = _street_pair()
+  r, t = STREET_WORLD
+  still = pc1[part == 1] @ r.T + t
+  assert np.all(np.abs(still[:, 0]) > VIEW * still[:, 2])  # every box point off the view
+  flow, _ = bodies.rigid_bodies(pc1, pc2, truth)
+  assert np.linalg.norm(flow - truth, axis=1)[part == 1].mean() < 0.02
+  # Every departure taken for a slide: the box joins the world (the check above is what holds it)
+  flow, _ = bodies.rigid_bodies(pc1, pc2, truth, bodies.Settings(slide=1.01))
+  assert np.linalg.norm(flow - truth, axis=1)[part == 1].mean() > 1.0
+
+
+def test_the_view_tells_seen_hidden_and_outside():
+  pc2 = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [-1.0, 0.0, 10.0], [0.0, 1.0, 10.0],
+                  [0.0, -1.0, 10.0], [0.5, 0.0, 40.0]])  # the last: the view reaches 40 m
+  state = bodies.View(pc2).state(np.array([[0.0, 0.0, 5.0],  # before the return: seen
+                                           [0.0, 0.0, 10.3],  # on it
+                                           [0.0, 0.0, 12.0],  # behind it: hidden
+                                           [0.5, 0.5, 10.0],  # no return there: seen (empty)
+                                           [5.0, 0.0, 10.0],  # beyond the view's edge
+                                           [0.0, 0.0, 41.0]]))  # beyond its range
+  assert state.tolist() == [bodies.SEEN, bodies.SEEN, bodies.HIDDEN, bodies.SEEN,
+                            bodies.OUTSIDE, bodies.OUTSIDE]
+
+
 @pytest.mark.parametrize("case", ["nan", "few", "empty_support"])
 def test_bad_input_returns_the_flow_unchanged_with_a_note(case):
   pc1, pc2, truth, _ = _pair(n=200)
