@@ -180,7 +180,6 @@ def _run_all(jobs: dict) -> dict:
     return {k: f.result() for k, f in futures.items()}
 
 
-@pytest.mark.slow
 def _toy_key(command: str, checkpoint: Path) -> tuple:
   """A command at toy size up to the names of its files and its workdir: two documented commands
   of the same key run the same code (e.g. the main job in README.md and docs/training.md, whose
@@ -192,6 +191,7 @@ def _toy_key(command: str, checkpoint: Path) -> tuple:
                for i, a in enumerate(argv))
 
 
+@pytest.mark.slow
 def test_every_documented_command_runs_at_toy_size(tmp_path):
   commands = [(w, c) for w, c in every_command() if plan(c)[0] != "skip"]
   main_job = next(c for _, c in commands if plan(c)[0] == "run" and "train.py" in c)
