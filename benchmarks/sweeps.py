@@ -96,7 +96,7 @@ def main():
     nsfp = inference.load_predictor(method="nsfp")
     methods["nsfp, 8192-point sweeps, ground left out"] = "nsfp"
 
-  def nsfp_flow(pair):
+  def nsfp_flow(pair):  # ground points get zero flow: they are not scored
     flow = np.zeros_like(pair.pc1)
     flow[~pair.ground] = nsfp(pair.pc1[~pair.ground], pair.pc2[~pair.ground2])
     return flow

@@ -15,10 +15,10 @@ right on most of each body (the optimiser's):
    motions its neighbours hold (a body is contiguous), pulled a little towards its starting flow
    and towards the largest body (the world) so that ties (a plane sliding along itself) do not
    jump; motions are refitted to the points they won and the points reassigned (`em_rounds`);
-   a body whose points the world's motion fits as well (on the points pc2 would see, `View`)
-   joins the world; so does one the world's motion takes out of pc2's view when its own motion
-   is a slide of the world's along its surfaces (a facade leaving a camera's view, dragged along
-   itself onto what pc2 still sees: nothing refutes the world's motion there);
+   a body whose points the world's motion fits as well (on the points pc2 would see:
+   jaxflow.visibility) joins the world; so does one the world's motion takes out of pc2's view
+   when its own motion is a slide of the world's along its surfaces (a facade leaving a camera's
+   view, dragged along itself onto what pc2 still sees: nothing refutes the world's motion there);
 4. per-point freedom where no rigid motion fits: a point whose best motion fits worse than its
    starting flow by more than `free_margin` keeps the starting flow, unless its best motion takes
    it out of pc2's view (there a starting flow that fits is a point dragged onto what pc2 saw).
@@ -33,6 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from jaxflow import ego, rigid
+from jaxflow.visibility import OUTSIDE, SEEN, View
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,41 +88,6 @@ def _normals(points_Mx3, k: int = 10) -> np.ndarray:
   _, idx = cKDTree(points_Mx3).query(points_Mx3, min(k, len(points_Mx3)))
   centred = points_Mx3[idx] - points_Mx3[idx].mean(1, keepdims=True)
   return np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1][:, :, 0]
-
-
-SEEN, HIDDEN, OUTSIDE = range(3)
-
-
-class View:
-  """What pc2's sensor (at the origin, y up, z forward: the model frame) saw: its nearest return
-  per direction, and the extent of its view (azimuth, elevation, range). A moved pc1 point is
-  SEEN (pc2 looked at least that far there, an empty direction inside the view included),
-  HIDDEN (behind a nearer return) or OUTSIDE the view (a camera's edge, the range cut)."""
-
-  def __init__(self, pc2_Mx3, bin_deg: float = 1.0, hidden: float = 0.5):
-    self.bin_deg, self.hidden = bin_deg, hidden
-    self.columns, self.rows = int(np.ceil(360 / bin_deg)), int(np.ceil(180 / bin_deg))
-    self.nearest = np.full(self.columns * self.rows, np.inf)
-    key, r, azimuth, elevation = self._directions(pc2_Mx3)
-    np.minimum.at(self.nearest, key, r)
-    self.extent = (*np.quantile(azimuth, [0.001, 0.999]), *np.quantile(elevation, [0.001, 0.999]),
-                   r.max())
-
-  def _directions(self, points_Kx3):
-    r = np.linalg.norm(points_Kx3, axis=1)
-    azimuth = np.degrees(np.arctan2(points_Kx3[:, 0], points_Kx3[:, 2]))
-    elevation = np.degrees(np.arcsin(np.clip(points_Kx3[:, 1] / np.maximum(r, 1e-9), -1, 1)))
-    i = np.clip(((azimuth + 180) / self.bin_deg).astype(np.int64), 0, self.columns - 1)
-    j = np.clip(((elevation + 90) / self.bin_deg).astype(np.int64), 0, self.rows - 1)
-    return i * self.rows + j, r, azimuth, elevation
-
-  def state(self, moved_Kx3) -> np.ndarray:
-    """SEEN, HIDDEN or OUTSIDE for each point (in frame 2's coordinates)."""
-    key, r, azimuth, elevation = self._directions(moved_Kx3)
-    lo_az, hi_az, lo_el, hi_el, far = self.extent
-    outside = (azimuth < lo_az) | (azimuth > hi_az) | (elevation < lo_el) | (elevation > hi_el) | (
-      r > far)
-    return np.where(outside, OUTSIDE, np.where(self.nearest[key] < r - self.hidden, HIDDEN, SEEN))
 
 
 def _slides(points_Kx3, normals_Kx3, motion, world, most: float) -> bool:
@@ -274,7 +240,8 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
     return flow.astype(np.float32), Found(0, len(pc1), "bodies: no rigid motion has support; "
                                                       "the flow is returned unchanged")
   target = _Target(pc2)
-  view = View(pc2, settings.view_bin_deg, settings.hidden)
+  bins = round(360 / settings.view_bin_deg), round(180 / settings.view_bin_deg)
+  view = View(pc2, "y", *bins, settings.hidden)  # the model frame: y up
   normals1 = _normals(pc1)
   coarse = (0.2, 0.1, 0.05, 0.03)
   motions = [target.icp(pc1[sample[_subset(inl, settings.icp_points, rng)]], (r, t),

@@ -19,7 +19,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from jaxflow import ego, rigid
+from jaxflow import ego, rigid, visibility as views
 
 CELL = 0.3  # metres: objects are connected cells seen from above (gaps of a cell bridged)
 OBJECT_TOP = 2.6  # metres above the ground: higher points (crowns, facades' tops) join no object
@@ -95,30 +95,6 @@ def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion) -> rigid.Motio
     if np.abs(step).max() < 1e-5:
       break
   return rigid.Motion(rotation, translation)
-
-
-class Visibility:
-  """pc2's nearest return per direction from the frame-2 sensor (a coarse range image): a moved
-  pc1 point behind one of them is hidden in pc2 and neither supports nor refutes a motion."""
-
-  def __init__(self, pc2_Mx3):
-    self.bins = np.full(AZIMUTH_BINS * ELEVATION_BINS, np.inf)
-    flat, r = self._flat(np.asarray(pc2_Mx3, np.float64))
-    np.minimum.at(self.bins, flat, r)
-
-  @staticmethod
-  def _flat(points_Kx3):
-    r = np.linalg.norm(points_Kx3, axis=1)
-    az = np.arctan2(points_Kx3[:, 1], points_Kx3[:, 0])
-    el = np.arcsin(np.clip(points_Kx3[:, 2] / np.maximum(r, 1e-9), -1, 1))
-    i = np.clip(((az + np.pi) / (2 * np.pi) * AZIMUTH_BINS).astype(np.int64), 0, AZIMUTH_BINS - 1)
-    j = np.clip(((el + np.pi / 2) / np.pi * ELEVATION_BINS).astype(np.int64), 0,
-                ELEVATION_BINS - 1)
-    return i * ELEVATION_BINS + j, r
-
-  def hidden(self, points2_Kx3) -> np.ndarray:
-    flat, r = self._flat(points2_Kx3)
-    return self.bins[flat] < r - HIDDEN
 
 
 def _costs(tree, points_Kx3, visibility, to2, truncate) -> np.ndarray:
@@ -210,7 +186,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   label[ground1] = -1
   unexplained = _per_point(target, pc1) > UNEXPLAINED
   tree = cKDTree(above2)
-  visibility = Visibility(np.asarray(pc2_Mx3, np.float64))
+  visibility = views.View(pc2_Mx3, "z", AZIMUTH_BINS, ELEVATION_BINS, HIDDEN)
   rng = np.random.default_rng(seed)
   moved, candidates = [], 0
   order = np.argsort(label, kind="stable")

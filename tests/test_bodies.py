@@ -161,19 +161,6 @@ def test_a_box_out_of_the_view_only_under_the_world_motion_keeps_its_own():
   assert np.linalg.norm(flow - truth, axis=1)[part == 1].mean() > 1.0
 
 
-def test_the_view_tells_seen_hidden_and_outside():
-  pc2 = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [-1.0, 0.0, 10.0], [0.0, 1.0, 10.0],
-                  [0.0, -1.0, 10.0], [0.5, 0.0, 40.0]])  # the last: the view reaches 40 m
-  state = bodies.View(pc2).state(np.array([[0.0, 0.0, 5.0],  # before the return: seen
-                                           [0.0, 0.0, 10.3],  # on it
-                                           [0.0, 0.0, 12.0],  # behind it: hidden
-                                           [0.5, 0.5, 10.0],  # no return there: seen (empty)
-                                           [5.0, 0.0, 10.0],  # beyond the view's edge
-                                           [0.0, 0.0, 41.0]]))  # beyond its range
-  assert state.tolist() == [bodies.SEEN, bodies.SEEN, bodies.HIDDEN, bodies.SEEN,
-                            bodies.OUTSIDE, bodies.OUTSIDE]
-
-
 @pytest.mark.parametrize("case", ["nan", "few", "empty_support"])
 def test_bad_input_returns_the_flow_unchanged_with_a_note(case):
   pc1, pc2, truth, _ = _pair(n=200)
