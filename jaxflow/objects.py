@@ -9,8 +9,8 @@ object with enough unexplained points (a share of its points, or a count) gets m
 several starts (standing still, the caller's flow, e.g. the network's, fitted rigidly, and the best
 translation of a search over +-SEARCH m), each refined by a bird's-eye ICP (yaw and translation;
 its height follows the ground), and keeps the motion that fits pc2 best, standing still unless
-another fits clearly better. Points no object claims keep the ego-motion. All in z-up
-coordinates, frame 1.
+another fits clearly better; a kept motion is refitted on all the object's points. Points no
+object claims keep the ego-motion. All in z-up coordinates, frame 1.
 """
 
 import dataclasses
@@ -224,6 +224,11 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
           best_name, best, best_costs = name, m, c
     if best_name == "still" or not _better(still_costs, best_costs):
       continue
+    if len(pts) > len(sample):  # chosen and judged on halves of the points: now fitted on all
+      refit = _bev_icp(target, pts, best)
+      if _mean(_costs(tree, refit.apply(pts), visibility, ego_motion, truncate)) <= _mean(
+          _costs(tree, best.apply(pts), visibility, ego_motion, truncate)):
+        best = refit
     if surface is not None:  # on the ground: the height follows it
       centre = pts.mean(0)
       new_centre = best.apply(centre[None])[0]

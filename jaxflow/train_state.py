@@ -73,11 +73,18 @@ def make_optimizer(config: ml_collections.ConfigDict, total_steps: int):
   )
 
 
+@functools.lru_cache(maxsize=8)
+def _jitted_init(model):
+  # One jitted init per model (modules compare by their fields): training's check by
+  # jax.eval_shape and the real init then share one trace of the model.
+  return jax.jit(functools.partial(model.init, num_iters=1))
+
+
 def init_params(model, config: ml_collections.ConfigDict, rng):
   """Freshly initialised parameters (the shapes do not depend on the number of points)."""
   n = max(config.model.knn, 32)
   pc = jnp.zeros((1, n, 3), jnp.float32) + jnp.linspace(0.0, 1.0, n)[None, :, None]
-  return jax.jit(functools.partial(model.init, num_iters=1))(rng, pc, pc)["params"]
+  return _jitted_init(model)(rng, pc, pc)["params"]
 
 
 def create_train_state(params, tx) -> TrainState:

@@ -16,6 +16,7 @@ import jax
 import numpy as np
 import pytest
 
+from conftest import xla_flags
 from jaxflow import checkpointing, distributed, evaluation
 from jaxflow.configs import default
 from jaxflow.data import BatchLoader, eval_batches, open_dataset
@@ -73,23 +74,48 @@ def final_params(workdir):
   return jax.device_get(state)
 
 
+def kill_one_at_the_first_checkpoint(procs, workdir):
+  """SIGKILLs process 1 once the first checkpoint exists; process 0 stops at its next collective
+  (or is killed too)."""
+  first = workdir / "checkpoints" / str(EVERY)
+  deadline = time.monotonic() + TIMEOUT
+  while not first.exists() and procs[1].poll() is None and time.monotonic() < deadline:
+    time.sleep(0.01)
+  procs[1].send_signal(signal.SIGKILL)
+  procs[1].wait()
+  try:
+    procs[0].wait(timeout=5)
+  except subprocess.TimeoutExpired:
+    procs[0].send_signal(signal.SIGKILL)
+    procs[0].wait()
+  for p in procs:
+    p.log.close()
+  assert first.exists() and not (workdir / "checkpoints" / str(STEPS)).exists()
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-  """(2-process workdir, 1-process-2-devices workdir), both with the end-of-run evaluation."""
+  """(2-process workdir, 1-process-2-devices workdir, the restarted processes' outputs), both runs
+  with the end-of-run evaluation. The two processes are interrupted: one is SIGKILLed after the
+  first checkpoint, then both are started again with the same command and finish the run."""
   root = tmp_path_factory.mktemp("distributed")
-  two = start_two(root / "two")  # runs while the single process below does
-  one = subprocess.run(
-    [sys.executable, "train.py", *FLAGS, "--workdir", str(root / "one")], cwd=REPO,
-    env=env(XLA_FLAGS="--xla_force_host_platform_device_count=2"), capture_output=True,
-    text=True, timeout=TIMEOUT)
-  assert one.returncode == 0, one.stderr[-3000:]
-  wait_all(two)
-  return root / "two", root / "one"
+  two = root / "two"
+  killed = start_two(two)
+  with open(root / "one.log", "w") as log:  # runs while the two processes do
+    one = subprocess.Popen(
+      [sys.executable, "train.py", *FLAGS, "--workdir", str(root / "one")], cwd=REPO,
+      env=env(XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=2")), stdout=log,
+      stderr=subprocess.STDOUT, text=True)
+    kill_one_at_the_first_checkpoint(killed, two)
+    resumed = wait_all(start_two(two))
+    one.wait(timeout=TIMEOUT)
+  assert one.returncode == 0, (root / "one.log").read_text()[-3000:]
+  return two, root / "one", resumed
 
 
 @pytest.mark.slow
 def test_two_processes_reach_the_heldout_epe_of_one_process_with_two_devices(runs):
-  two, one = runs
+  two, one, _ = runs
   epe = {w: json.loads((w / "eval.json").read_text())["model"]["epe"] for w in (two, one)}
   assert epe[two] == pytest.approx(epe[one], rel=1e-4)
   # Process 0 alone wrote the files: each logged step once, the config beside the checkpoints.
@@ -100,7 +126,7 @@ def test_two_processes_reach_the_heldout_epe_of_one_process_with_two_devices(run
 
 @pytest.mark.slow
 def test_a_two_process_checkpoint_evaluates_in_one_process_and_in_two(runs, tmp_path):
-  two, _ = runs
+  two, _, _ = runs
   config = default.get_config("smoke")
   config.eval.dataset = "synthetic_lidar:5"  # 3 batches of 2: process 0 takes two, process 1 one
   one = evaluation.evaluate_checkpoint(two, config)
@@ -118,27 +144,11 @@ def test_a_two_process_checkpoint_evaluates_in_one_process_and_in_two(runs, tmp_
 
 
 @pytest.mark.slow
-def test_sigkill_of_one_process_then_a_restart_of_both_resumes(runs, tmp_path):
-  workdir = tmp_path / "killed"
-  procs = start_two(workdir, "--config.eval.dataset=")
-  first = workdir / "checkpoints" / str(EVERY)
-  deadline = time.monotonic() + TIMEOUT
-  while not first.exists() and procs[1].poll() is None and time.monotonic() < deadline:
-    time.sleep(0.01)
-  procs[1].send_signal(signal.SIGKILL)
-  procs[1].wait()
-  try:  # the other one stops at its next collective, or is killed here
-    procs[0].wait(timeout=5)
-  except subprocess.TimeoutExpired:
-    procs[0].send_signal(signal.SIGKILL)
-    procs[0].wait()
-  for p in procs:
-    p.log.close()
-  assert first.exists() and not (workdir / "checkpoints" / str(STEPS)).exists()
-  outputs = wait_all(start_two(workdir, "--config.eval.dataset="))
+def test_sigkill_of_one_process_then_a_restart_of_both_resumes(runs):
+  two, one, outputs = runs
   assert all("resuming from" in out for out in outputs)
-  uninterrupted = final_params(runs[0])
-  for a, b in zip(jax.tree.leaves(final_params(workdir)), jax.tree.leaves(uninterrupted)):
+  # The interrupted two processes end where one uninterrupted process with two devices does.
+  for a, b in zip(jax.tree.leaves(final_params(two)), jax.tree.leaves(final_params(one))):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
 
 

@@ -124,7 +124,7 @@ def _write_cloud(path: Path, points: np.ndarray):
 def toy_args(command: str, cwd: Path, checkpoint: Path) -> list[str] | None:
   """The argv of a documented command at toy size (point files written into `cwd`), or None."""
   argv = shlex.split(command.replace("[", "").replace("]", ""))
-  argv = [{"PC1": "pc1.npy", "PC2": "pc2.npy"}.get(a, a) for a in argv]
+  argv = [{"PC1": "pc1.ply", "PC2": "pc2.ply"}.get(a, a) for a in argv]  # as README.md's
   if argv[0] in ("python", "python3"):
     argv[0] = sys.executable
   if argv[1] in ("train.py", "evaluate.py"):

@@ -157,8 +157,6 @@ def runs(tmp_path_factory):
                               d / "p_opt.npy", "--iters", "2", "--steps", "15"],
     "nsfp": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "pc2.npy", "--out", d / "n.npy",
                   "--steps", "15"],
-    "nsfp_grid": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "pc2.npy", "--out", d / "g.npy",
-                       "--steps", "15", "--objective", "grid"],
     "nsfp_bad": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "bad.npy", "--out", d / "x.npy"],
     "nsfp_bad_objective": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "pc2.npy", "--out",
                                 d / "y.npy", "--objective", "fast"],
@@ -173,7 +171,7 @@ def runs(tmp_path_factory):
 @pytest.mark.slow
 def test_methods_run_from_both_command_lines(runs):
   d, out = runs
-  for case in ("eval_nsfp", "predict_optimise", "nsfp", "nsfp_grid"):
+  for case in ("eval_nsfp", "predict_optimise", "nsfp"):
     assert out[case][0] == 0, (case, out[case][2][-2000:])
   results = json.loads((d / "nsfp.json").read_text())
   assert results["method"] == "nsfp" and results["method_settings"]["model"] == "mlp"
@@ -184,13 +182,13 @@ def test_methods_run_from_both_command_lines(runs):
   assert results["convergence"] == {"pairs": 1, "non_finite": 0, "early_stopped": 0,
                                     "mean_steps": 15.0}
   assert "early stopping did not fire on 1 of 1 pairs" in out["eval_nsfp"][2]
-  for name in ("p_opt", "n", "g"):
+  for name in ("p_opt", "n"):
     flow = np.load(d / f"{name}.npy")
     assert flow.shape == (120, 3) and np.isfinite(flow).all()
   assert "method optimise" in out["predict_optimise"][2]  # the default method
   # 15 steps do not let NSFP's early stopping fire: the user is told.
   assert "did not fire within 15 steps" in out["nsfp"][2]
-  assert "(exact objective)" in out["nsfp"][2] and "(grid objective)" in out["nsfp_grid"][2]
+  assert "(exact objective)" in out["nsfp"][2]  # the grid's: tests/test_predict.py
 
 
 @pytest.mark.slow

@@ -98,3 +98,20 @@ def test_a_car_hidden_in_pc2_where_it_stood_still_is_moved_when_its_motion_fits(
   assert len(found.moved) == 1
   assert np.linalg.norm(flow[:100] - [-1.5, 0, 0], axis=1).mean() < 0.15
   np.testing.assert_array_equal(flow[100:], 0.0)  # the wall stays
+
+
+def test_a_near_car_of_thousands_of_points_gets_the_motion_of_all_of_them():
+  """A car 4 m away seen from two sides (3000 points, sampled anew in pc2), moving 1.2 m and
+  turning 3 degrees: the motion is judged on half of its points and refitted on all of them."""
+  size = np.array([4.5, 1.8, 1.5])
+  faces = ["-y", "-x", "top"]
+  pc1 = _visible_faces(np.random.default_rng(3), (6.0, 4.0), size, 3000, faces)
+  centre = pc1.mean(0)
+  motion = rigid.Motion(yaw(3.0), centre - yaw(3.0) @ centre + [1.2, 0.3, 0.0])
+  pc2 = motion.apply(_visible_faces(np.random.default_rng(4), (6.0, 4.0), size, 3000, faces))
+  still = rigid.Motion(np.eye(3), np.zeros(3))
+  flow, found = objects.object_flow(pc1, pc2, np.zeros(len(pc1), bool), np.zeros(len(pc2), bool),
+                                    still)
+  assert len(found.moved) == 1
+  # Measured: 0.021 m; 0.078 with the motion of the 150 points it was searched on.
+  assert np.linalg.norm(flow - motion.flow(pc1), axis=1).mean() < 0.04

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from flax import traverse_util
 
+from conftest import xla_flags
 from jaxflow.configs import default, stage2_synthetic
 from jaxflow import checkpointing, evaluation, events, train_state, training
 from jaxflow.data import BatchLoader, open_dataset
@@ -316,7 +317,7 @@ def test_data_parallel_over_two_devices_matches_one_device(tmp_path):
   step = training.jit_train_step(model, tx, config, mesh)
   state, metrics = jax.device_get(step(state, training.device_batch(loader.batch(0), mesh)))
 
-  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+  env = dict(os.environ, XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=2"),
              JAX_PLATFORMS="cpu",
              PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
   out = tmp_path / "two.npz"
