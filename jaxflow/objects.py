@@ -224,11 +224,10 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
           best_name, best, best_costs = name, m, c
     if best_name == "still" or not _better(still_costs, best_costs):
       continue
-    if len(pts) > len(sample):  # chosen and judged on halves of the points: now fitted on all
-      refit = _bev_icp(target, pts, best)
-      if _mean(_costs(tree, refit.apply(pts), visibility, ego_motion, truncate)) <= _mean(
-          _costs(tree, best.apply(pts), visibility, ego_motion, truncate)):
-        best = refit
+    refit = _bev_icp(target, pts, best)  # chosen and judged on halves: now fitted on all points
+    if _mean(_costs(tree, refit.apply(pts), visibility, ego_motion, truncate)) <= _mean(
+        _costs(tree, best.apply(pts), visibility, ego_motion, truncate)):
+      best = refit
     if surface is not None:  # on the ground: the height follows it
       centre = pts.mean(0)
       new_centre = best.apply(centre[None])[0]

@@ -101,7 +101,7 @@ def test_a_car_hidden_in_pc2_where_it_stood_still_is_moved_when_its_motion_fits(
 
 
 def test_a_near_car_of_thousands_of_points_gets_the_motion_of_all_of_them():
-  """A car 4 m away seen from two sides (3000 points, sampled anew in pc2), moving 1.2 m and
+  """A car 7 m away seen from two sides (3000 points, sampled anew in pc2), moving 1.2 m and
   turning 3 degrees: the motion is judged on half of its points and refitted on all of them."""
   size = np.array([4.5, 1.8, 1.5])
   faces = ["-y", "-x", "top"]
