@@ -289,12 +289,18 @@ def check_ground(surface: Surface, ground_N, name: str, up: str):
                     f"({override})")
 
 
-def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float, seed: int = 0):
+def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
+                  seed: int = 0) -> str | None:
   """Refuses an up axis perpendicular to the sweep's largest plane when that plane holds a third
-  of the points and more than what was taken as ground (`ground_fraction`): the ground is a
-  sweep's largest plane, a wall rarely is."""
+  of the points and more than what was taken as ground (`ground_fraction`), and lies where a
+  ground would (MIN_SENSOR_HEIGHT to MAX_SENSOR_HEIGHT from the origin): the ground is a sweep's
+  largest plane, a wall rarely is. A perpendicular plane farther away (a facade beside a sweep
+  whose ground was removed upstream) gives a note (returned) instead: `up` may well be right."""
   k = axis(up)
   p = np.asarray(points_Nx3, np.float64)
+  p = p[np.isfinite(p).all(1)]
+  if len(p) < 3:
+    return None
   rng = np.random.default_rng(seed)
   sample = p[rng.choice(len(p), min(len(p), 4000), replace=False)]
   triples = sample[rng.integers(0, len(sample), (300, 3))]
@@ -302,19 +308,25 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float, seed: 
   norms = np.linalg.norm(normals, axis=1)
   ok = norms > 1e-6
   if not ok.any():
-    return
+    return None
   normals, triples = normals[ok] / norms[ok, None], triples[ok]
   counts = (np.abs((sample[None] - triples[:, None, 0]) @ normals[..., None])[..., 0]
             < INLIER).sum(1)
   best = int(np.argmax(counts))
   share = counts[best] / len(sample)
   across = abs(normals[best, k]) < np.cos(np.radians(45))
-  if share > 1 / 3 and share > 1.2 * ground_fraction and across:
-    along = "xyz"[int(np.argmax(np.abs(normals[best])))]
+  if not (share > 1 / 3 and share > 1.2 * ground_fraction and across):
+    return None
+  along = "xyz"[int(np.argmax(np.abs(normals[best])))]
+  distance = abs(float(normals[best] @ triples[best, 0]))  # of the origin from the plane
+  if distance <= MAX_SENSOR_HEIGHT:
     raise DataError(name, f"no ground plane across the {up} axis: the sweep's largest plane "
-                    f"({100 * share:.0f}% of the points) is perpendicular to it, and is most "
-                    f"likely the ground: use --up {along} (or --noground_limits, "
-                    f"ground_limits=False in Python, if {up} is right)")
+                    f"({100 * share:.0f}% of the points, {distance:.1f} m from the origin) is "
+                    f"perpendicular to it, and is most likely the ground: use --up {along} (or "
+                    f"--noground_limits, ground_limits=False in Python, if {up} is right)")
+  return (f"{name}: its largest plane ({100 * share:.0f}% of the points) is perpendicular to "
+          f"--up {up}, {distance:.1f} m from the origin: a wall, if {up} is up (else use --up "
+          f"{along})")
 
 
 def lidar_keep(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_RANGE,

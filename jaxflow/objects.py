@@ -176,7 +176,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   flow = ego_motion.flow(pc1).astype(np.float64)
   back = _inverse(ego_motion)
   pc2_in1 = back.apply(pc2_Mx3)
-  target = ego.Target(pc2_in1, ground2_M, None)
+  target = ego.Target(pc2_in1, ground2_M)
   above2 = pc2_in1[~np.asarray(ground2_M, bool)]
   if target.tree is None or len(above2) < 3:
     return flow.astype(np.float32), Found(0, 0, [])

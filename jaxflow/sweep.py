@@ -5,9 +5,11 @@
 
 Raw sweeps (360 degrees, ground kept, independently sampled) are mostly static world, so the
 sensor's own motion is most of the flow (issue 26):
-1. the ground of each sweep: local planes per cell (jaxflow.ground.fit_surface), refused when it
-   cannot be one (a wall under a wrong `up`; `ground_limits=False` overrides);
-2. the ego-motion: a robust ICP of the sweeps from several starts (jaxflow.ego);
+1. the ground of each sweep, if it has one: local planes per cell (jaxflow.ground.fit_surface),
+   refused when it cannot be one (a wall under a wrong `up`; `ground_limits=False` overrides); a
+   sweep whose ground was removed upstream is a normal case;
+2. the ego-motion: GICP of all the points from several starts, zero motion among the candidates,
+   the one that explains the static world best kept (jaxflow.ego);
 3. the ground again, fitted to both sweeps in pc1's frame, so the two agree;
 4. moving objects: groups of points the ego-motion does not explain, one rigid motion each
    (jaxflow.objects); every other point, ground and far points included, gets the ego-motion flow.
@@ -24,7 +26,6 @@ from jaxflow import ego, ground, objects, rigid
 from jaxflow.errors import DataError
 
 MIN_AZIMUTH = 0.5  # of the azimuth a sweep covers at least (a camera's view covers less)
-MIN_PLANE_SHARE = 0.2  # of the points within 20 m on the ground plane, or there is no ground
 _TO_Z_UP = {"z": [0, 1, 2], "y": [2, 0, 1], "x": [1, 2, 0]}  # cyclic: proper rotations
 
 
@@ -52,11 +53,12 @@ class SweepInfo:
               f"({self.motion.angle_deg:.2f} deg, {np.linalg.norm(self.motion.translation):.2f} m)"
               + "".join(f"\nnote: {n}" for n in self.notes))
     ground_text = ("no ground found" if self.sensor_height is None else
-                   f"ground plane per 2 m cell (sensor {self.sensor_height:.2f} m above it)")
+                   f"ground plane per 2 m cell (the origin {self.sensor_height:.2f} m above it)")
     return (f"--lidar: {ground_text}; removed {self.ground[0]} ground points of PC1 "
             f"({self.ground[1]} of PC2); ego-motion {self.ego.motion.angle_deg:.2f} deg, "
-            f"{np.linalg.norm(self.motion.translation):.2f} m ({self.ego.start} start, "
-            f"{100 * self.ego.inlier_fraction:.0f}% of the points explained); "
+            f"{np.linalg.norm(self.motion.translation):.2f} m ({self.ego.start}, "
+            f"{100 * self.ego.inlier_fraction:.0f}% of the points within "
+            f"{100 * ego.INLIER:.0f} cm of PC2's surfaces); "
             f"{len(self.objects.moved)} of {self.objects.candidates} candidate objects move "
             f"({moved} points); the other {self.kept[0] + self.far[0] + self.ground[0] - moved} "
             "PC1 points get the ego-motion flow"
@@ -70,11 +72,6 @@ def _surface(points_Nx3, name, notes):
     plane = ground.fit_ground(points_Nx3, "z", 20.0, name=name)
   except DataError as e:
     notes.append(f"{e}; no point of {name} is taken as ground")
-    return None, np.zeros(len(points_Nx3), bool)
-  near = int(ground.within_range(points_Nx3, "z", 20.0).sum())
-  if plane.inliers < MIN_PLANE_SHARE * near:  # a road holds ~60% of the points near the sensor
-    notes.append(f"{name}: no ground found (the best plane under the sensor holds "
-                 f"{plane.inliers} of the {near} points within 20 m); no point is taken as ground")
     return None, np.zeros(len(points_Nx3), bool)
   surface = ground.fit_surface(points_Nx3, "z", plane, name)
   return surface, surface.ground(points_Nx3)
@@ -97,10 +94,17 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
   view = azimuth_coverage(pc1)
   if ground_limits:
     for raw, surf, g, name in ((pc1_Nx3, surf1, g1, names[0]), (pc2_Mx3, surf2, g2, names[1])):
+      try:
+        if surf is not None:
+          ground.check_ground(surf, g, name, up)
+      except DataError:  # a wall taken for the ground: name the right axis where it shows
+        if view >= MIN_AZIMUTH:
+          ground.check_up_axis(raw, up, name, 0.0)
+        raise
       if view >= MIN_AZIMUTH:  # a camera facing a wall sees mostly wall: no sign of a wrong up
-        ground.check_up_axis(raw, up, name, g.mean() if surf is not None else 0.0)
-      if surf is not None:
-        ground.check_ground(surf, g, name, up)
+        note = ground.check_up_axis(raw, up, name, g.mean() if surf is not None else 0.0)
+        if note:
+          notes.append(note)
   near1, near2 = ground.within_range(pc1, "z", max_range), ground.within_range(pc2, "z", max_range)
   keep1, keep2 = ~g1 & near1, ~g2 & near2
   if view < MIN_AZIMUTH and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
@@ -120,7 +124,7 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
     start_flow = np.full_like(pc1, np.nan)
     start_flow[keep1] = kept_flow[:, order]
     starts["network"] = rigid.fit_static_motion(pc1[keep1], start_flow[keep1])
-  fit = ego.estimate(pc1, pc2, g1, g2, surf2, starts, seed)
+  fit = ego.estimate(pc1, pc2, g1, g2, starts, seed)
   if fit.note:
     notes.append(fit.note)
   surface = surf1
