@@ -6,8 +6,9 @@
     keep_N = ~ground_N & within_range(points_Nx3, "z", 35.0)
 
 The benchmark layouts remove ground by height (KITTI's camera frame: y < -1.4) and keep 35 m
-(DESIGN.md section 7); a raw sweep has neither. `check_ground` and `check_up_axis` refuse a
-"ground" that cannot be one (a wall under a wrong up axis). jaxflow.sweep uses all of it for the
+(the KITTI loader's convention); a raw sweep has neither. `check_up_axis` refuses an up axis
+under which the sweep's largest plane, most likely its ground, stands upright; `check_ground`
+notes a ground that looks wrong. jaxflow.sweep uses all of it for the
 flow of raw sweep pairs.
 """
 
@@ -272,21 +273,26 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
   return surface
 
 
-def check_ground(surface: Surface, ground_N, name: str, up: str):
-  """Refuses a ground that cannot be one (issue 29): more than MAX_SENSOR_HEIGHT below the origin
-  (the sensor, or a vehicle frame's origin near the ground), more than 1 m above it, or holding
-  most of the sweep (a wall taken as ground under a wrong --up)."""
+def check_ground(surface: Surface, ground_N, name: str, up: str, points_Nx3=None) -> str | None:
+  """A ground that looks wrong: more than MAX_SENSOR_HEIGHT below the origin or more than
+  -MIN_SENSOR_HEIGHT above it, or holding more than MAX_GROUND_FRACTION of the sweep. Under a
+  wrong up axis (a wall taken for the ground) `check_up_axis` on `points_Nx3` raises the error
+  that names the right axis; otherwise the problem is returned as a note (None: no problem): a
+  frame whose origin lies below the road, or a sweep of an empty car park, is data, not an error."""
   height, fraction = surface.sensor_height, float(np.mean(ground_N))
-  override = ("if this is right, give predict --noground_limits (ground_limits=False in "
-              "Python)")
+  problem = None
   if not MIN_SENSOR_HEIGHT <= height <= MAX_SENSOR_HEIGHT:
-    raise DataError(name, f"the ground found along --up {up} lies {height:.1f} m below the "
-                    f"origin (expected {MIN_SENSOR_HEIGHT:g} to {MAX_SENSOR_HEIGHT:g} m): is --up "
-                    f"right? ({override})")
-  if fraction > MAX_GROUND_FRACTION:
-    raise DataError(name, f"the ground found along --up {up} holds {100 * fraction:.0f}% of the "
-                    f"points (more than {100 * MAX_GROUND_FRACTION:.0f}%): is --up right? "
-                    f"({override})")
+    problem = (f"the ground found along --up {up} lies {height:.1f} m below the origin (a "
+               f"sensor's or vehicle's frame puts it {MIN_SENSOR_HEIGHT:g} to "
+               f"{MAX_SENSOR_HEIGHT:g} m below)")
+  elif fraction > MAX_GROUND_FRACTION:
+    problem = (f"the ground found along --up {up} holds {100 * fraction:.0f}% of the points "
+               f"(more than {100 * MAX_GROUND_FRACTION:.0f}%)")
+  if problem is None:
+    return None
+  if points_Nx3 is not None:
+    check_up_axis(points_Nx3, up, name, 0.0)
+  return f"{name}: {problem}; taken as the ground all the same (a wrong --up?)"
 
 
 def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,

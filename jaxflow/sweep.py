@@ -5,9 +5,10 @@
 
 Raw sweeps (360 degrees, ground kept, independently sampled) are mostly static world, so the
 sensor's own motion is most of the flow (issue 26):
-1. the ground of each sweep, if it has one: local planes per cell (jaxflow.ground.fit_surface),
-   refused when it cannot be one (a wall under a wrong `up`; `ground_limits=False` overrides); a
-   sweep whose ground was removed upstream is a normal case;
+1. the ground of each sweep, if it has one: local planes per cell (jaxflow.ground.fit_surface);
+   an up axis under which the sweep's largest plane stands upright near the origin is refused
+   (`ground_limits=False` overrides), a ground that looks odd is noted; a sweep whose ground was
+   removed upstream is a normal case;
 2. the ego-motion: GICP of all the points from several starts, zero motion among the candidates,
    the one that explains the static world best kept (jaxflow.ego);
 3. the ground again, fitted to both sweeps in pc1's frame, so the two agree;
@@ -94,17 +95,12 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z",
   view = azimuth_coverage(pc1)
   if ground_limits:
     for raw, surf, g, name in ((pc1_Nx3, surf1, g1, names[0]), (pc2_Mx3, surf2, g2, names[1])):
-      try:
-        if surf is not None:
-          ground.check_ground(surf, g, name, up)
-      except DataError:  # a wall taken for the ground: name the right axis where it shows
-        if view >= MIN_AZIMUTH:
-          ground.check_up_axis(raw, up, name, 0.0)
-        raise
-      if view >= MIN_AZIMUTH:  # a camera facing a wall sees mostly wall: no sign of a wrong up
-        note = ground.check_up_axis(raw, up, name, g.mean() if surf is not None else 0.0)
-        if note:
-          notes.append(note)
+      sweep_view = view >= MIN_AZIMUTH  # a camera facing a wall sees mostly wall: no sign of up
+      problem = surf is not None and ground.check_ground(surf, g, name, up,
+                                                         raw if sweep_view else None)
+      note = sweep_view and ground.check_up_axis(raw, up, name, g.mean() if surf is not None
+                                                 else 0.0)
+      notes.extend(n for n in (problem, note) if n)
   near1, near2 = ground.within_range(pc1, "z", max_range), ground.within_range(pc2, "z", max_range)
   keep1, keep2 = ~g1 & near1, ~g2 & near2
   if view < MIN_AZIMUTH and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:

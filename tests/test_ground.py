@@ -132,8 +132,12 @@ def test_a_wall_taken_for_the_ground_is_refused_with_the_way_out():
     ground.check_up_axis(pts, "y", "sweep.bin", 0.3)
   ground.check_up_axis(pts, "z", "sweep.bin", 0.8)  # the right axis passes
   surface = ground.fit_surface(pts, "z")
+  half = np.arange(len(pts)) < len(pts) // 2
+  assert ground.check_ground(surface, half, "sweep.bin", "z", pts) is None
   far = dataclasses.replace(surface, coef_HxWx3=surface.coef_HxWx3 - [0, 0, 8.0])
-  with pytest.raises(DataError, match="8.* m below the origin.*ground_limits=False"):
-    ground.check_ground(far, np.zeros(len(pts), bool), "sweep.bin", "z")
-  with pytest.raises(DataError, match="holds 90% of the points.*ground_limits=False"):
-    ground.check_ground(surface, np.arange(100) < 90, "sweep.bin", "z")
+  assert "9.8 m below the origin" in ground.check_ground(far, np.zeros(len(pts), bool),
+                                                         "sweep.bin", "z", pts)
+  assert "holds 90% of the points" in ground.check_ground(surface, np.arange(100) < 90,
+                                                          "sweep.bin", "z", pts)
+  with pytest.raises(DataError, match=r"--up z"):  # a problem under a wrong up names the axis
+    ground.check_ground(far, np.zeros(len(pts), bool), "sweep.bin", "y", pts)

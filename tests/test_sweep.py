@@ -40,14 +40,22 @@ def test_a_parked_sensor_leaves_the_background_still():
 
 @pytest.mark.parametrize("options", [ss.Options(ground=False, scale=0.3),
                                      ss.Options(speed=(3.0, 3.0), scale=0.3),
-                                     ss.Options(movers=False, scale=0.3)],
-                         ids=["no ground", "3 m a frame", "nothing moves"])
+                                     ss.Options(movers=False, scale=0.3),
+                                     ss.Options(origin_height=0.33, stacked=True, scale=0.3),
+                                     ss.Options(origin_height=0.0, dense=True, scale=0.3),
+                                     ss.Options(origin_height=-2.0, scale=0.3)],
+                         ids=["no ground", "3 m a frame", "nothing moves",
+                              "av2's ego frame, stacked sensors", "vehicle frame, dense city",
+                              "origin 2 m below the road"])
 def test_hard_sweeps_give_finite_flows_near_the_truth(options):
   s = ss.sweep_pair("val", 12, options)
   flow, info = run(s)
   background = (s.category == 0) & s.eval_mask
   assert np.median(np.linalg.norm(flow - s.flow, axis=1)[background]) < 0.05
   assert not any("perpendicular" in n for n in info.notes)  # no ground is no sign of a wrong up
+  np.testing.assert_allclose(info.motion.translation, s.ego_translation, atol=0.05)
+  below = options.origin_height is not None and options.origin_height < 0
+  assert any("below the origin" in n for n in info.notes) == below  # a note, not a refusal
 
 
 def test_broken_pairs_give_finite_flows_and_a_note():

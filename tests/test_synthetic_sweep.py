@@ -91,3 +91,29 @@ def test_the_dataset_says_it_is_z_up_and_carries_the_av2_labels():
   np.testing.assert_array_equal(pair.category, truth.category)
   np.testing.assert_array_equal(pair.ego_xy, truth.pc1[:, :2])
   assert pair.category.dtype == np.uint8 and (pair.category != 0).any()
+
+
+def test_the_frame_origin_the_city_and_the_sensors_vary_as_real_sweeps_do():
+  plain = ss.sweep_pair("val", 2, ss.Options(scale=0.3))
+  ego_frame = ss.sweep_pair("val", 2, ss.Options(origin_height=0.33, scale=0.3))
+  shift = ego_frame.pc1 - plain.pc1  # the same scene and rays, the origin lower
+  np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-4)
+  assert shift[0, :2] == pytest.approx([0, 0], abs=1e-6) and shift[0, 2] > 1.0
+  xy = ego_frame.pc1[:, :2]
+  under = ego_frame.ground & (np.abs(xy[:, 1]) < 2) & (np.abs(xy[:, 0]) < 10)  # the ego's lane
+  assert np.median(ego_frame.pc1[under, 2]) == pytest.approx(-0.33, abs=0.16)  # the crown
+  for s in (plain, ego_frame):  # the ego-motion still moves every static point onto its flow
+    static = s.category == 0
+    moved = s.pc1[static] @ s.ego_rotation.T + s.ego_translation
+    np.testing.assert_allclose(moved - s.pc1[static], s.ego_flow[static], atol=1e-4)
+  near = lambda s: np.hypot(s.pc1[:, 0], s.pc1[:, 1]) < 20
+  dense = ss.sweep_pair("val", 2, ss.Options(dense=True, scale=0.3))
+  assert dense.ground[near(dense)].mean() < 0.35 < plain.ground[near(plain)].mean()
+
+  def rings(s):  # occupied 0.2-degree elevation bins of the points beyond 10 m
+    far = np.hypot(*s.pc1[:, :2].T) > 10
+    return len(np.unique(np.floor(np.degrees(np.arctan2(s.pc1[far, 2], np.hypot(
+      *s.pc1[far, :2].T))) / 0.2)))
+  one = ss.sweep_pair("val", 2, ss.Options(beams=32, scale=0.3))
+  two = ss.sweep_pair("val", 2, ss.Options(beams=32, stacked=True, scale=0.3))
+  assert rings(two) > 1.5 * rings(one) and abs(len(two.pc1) / len(one.pc1) - 1) < 0.2

@@ -84,14 +84,20 @@ class Options:
   movers: bool = True  # moving cars, pedestrians and cyclists
   scale: float = 1.0  # rays x scale (0.05: ~5k points, for tests)
   beams: int | None = None
+  # What real sweeps vary in beyond the scene (the defaults: a roof sensor at the origin):
+  origin_height: float | None = None  # metres above the road of the frame's origin (None: the
+  # sensor's, 1.7-2.1 m; Argoverse 2's ego frame 0.33, Waymo's vehicle frame 0)
+  dense: bool = False  # a dense city: a narrow street walled by facades (the road ~20-30% of
+  # the points within 20 m instead of ~55-70%)
+  stacked: bool = False  # two 32-beam sensors stacked (Argoverse 2): two ring patterns a sweep
 
 
 # z up (x forward, y left) <- the caster's frame (x, y up, z forward): a cyclic permutation.
 _TO_Z_UP = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
-def _grid(rng, beams: int, columns: int) -> syn.Grid:
-  el = np.deg2rad(np.linspace(*ELEVATION_DEG, beams))
+def _grid(rng, beams: int, columns: int, offset_deg: float = 0.0) -> syn.Grid:
+  el = np.deg2rad(np.linspace(*ELEVATION_DEG, beams) + offset_deg)
   step = 2 * math.pi / columns
   az = -math.pi + (np.arange(columns) + rng.random()) * step
   ce, se, ca, sa = np.cos(el)[:, None], np.sin(el)[:, None], np.cos(az), np.sin(az)
@@ -102,9 +108,10 @@ def _grid(rng, beams: int, columns: int) -> syn.Grid:
 class _Street:
   """The ground's height field (caster frame: x across the road, z along it) and its planes."""
 
-  def __init__(self, rng, sensor_height: float):
+  def __init__(self, rng, sensor_height: float, dense: bool = False):
     self.g = -sensor_height
-    self.road = rng.uniform(9.0, 12.0)  # half width: parking, a cycle lane, two lanes, the ego's
+    # half width: parking, a cycle lane, two lanes, the ego's (a dense city: two lanes, parking)
+    self.road = rng.uniform(9.0, 12.0) if not dense else rng.uniform(4.5, 5.5)
     self.crown = rng.uniform(0.0, 0.15)  # road centre above its edges
     self.kerb = rng.uniform(0.08, 0.18)
     hill = rng.random()
@@ -156,7 +163,8 @@ def _cyclist(rng):
 
 
 def build_scene(rng, opt: Options = Options()):
-  """(Scene in the caster's frame, category per primitive, instance per primitive, ground prims)."""
+  """(Scene in the caster's frame, category per primitive, instance per primitive, ground prims,
+  the sensor's height above the road)."""
   speed = rng.uniform(*opt.speed) if opt.speed else (
     0.0 if rng.random() < 0.1 else rng.uniform(0.1, 1.0) if rng.random() < 0.4
     else rng.uniform(1.0, 3.0))
@@ -166,7 +174,7 @@ def build_scene(rng, opt: Options = Options()):
   sensor_rot = syn.rotation((0, 1, 0), yaw) @ tilt
   sensor_pos = (math.sin(yaw / 2) * speed, 0.0, math.cos(yaw / 2) * speed)
   builder = syn._Builder(sensor_rot, sensor_pos)
-  street = _Street(rng, rng.uniform(1.7, 2.1))
+  street = _Street(rng, rng.uniform(1.7, 2.1), opt.dense)
   cats, insts, grounds = [], [], []
 
   def add(parts, rot, pos, cat=BACKGROUND, motion_rot=None, motion_pos=None, is_ground=False):
@@ -184,13 +192,14 @@ def build_scene(rng, opt: Options = Options()):
     z = rng.uniform(-100, -80)
     while z < 100:  # facades with gaps
       length = rng.uniform(6, 30)
-      if rng.random() < 0.75:
-        x, height = side * (road + rng.uniform(3, 9)), rng.uniform(3, 18)
+      if rng.random() < 0.75 or opt.dense:  # a dense city: facades at the sidewalk, tall
+        x = side * (road + (rng.uniform(3, 9) if not opt.dense else rng.uniform(1.0, 2.0)))
+        height = rng.uniform(3, 18) if not opt.dense else rng.uniform(12, 30)
         base = street.height(x, z + length / 2) - 2
         add([(syn.BOX, syn._I, syn._Z, (4, height / 2 + 1, length / 2), None)],
             syn.rotation((0, 1, 0), rng.uniform(-0.06, 0.06)),
             (x + side * 4, base + height / 2 + 1, z + length / 2))
-      z += length + rng.uniform(0, 8)
+      z += length + (rng.uniform(0, 8) if not opt.dense else rng.uniform(0, 1))
     for _ in range(rng.integers(3, 10)):  # poles and trees
       x, z, h = side * (road + rng.uniform(0.4, 2.0)), rng.uniform(-60, 60), rng.uniform(3, 8)
       parts = [(syn.CYLINDER, syn._I, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
@@ -199,7 +208,7 @@ def build_scene(rng, opt: Options = Options()):
         parts.append((syn.ELLIPSOID, syn._I, (0, h + crown * 0.6, 0), (crown, crown * 0.8, crown),
                       syn._bump(rng, 0.12)))
       add(parts, syn._I, (x, street.height(x, z) - 0.05, z))
-    for _ in range(rng.integers(1, 7)):  # parked cars along the kerb
+    for _ in range(rng.integers(1, 7) if not opt.dense else rng.integers(6, 12)):  # parked cars
       x, z = side * (road - 1.1), rng.uniform(-50, 50)
       heading = rng.uniform(-0.08, 0.08) + (side < 0) * math.pi
       add(syn._car_parts(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
@@ -232,12 +241,19 @@ def build_scene(rng, opt: Options = Options()):
               (x, street.height(x, z), z), REGULAR_VEHICLE,
               syn.rotation((0, 1, 0), turn) if v else None, v * d if v else None)
         z += rng.uniform(10, 30)
-  return builder.scene(), np.array(cats, np.uint8), np.array(insts, np.int16), np.array(grounds)
+  return (builder.scene(), np.array(cats, np.uint8), np.array(insts, np.int16),
+          np.array(grounds), -street.g)
 
 
 def _cast(scene, frame, rng, opt: Options, beams: int):
   columns = max(16, round(RAYS * opt.scale / beams))
-  points, prim = syn.render(scene, frame, _grid(rng, beams, columns), max_depth=MAX_RANGE)
+  if opt.stacked:  # two 32-beam sensors, each with its own azimuth phase, rings interleaved
+    grids = [_grid(rng, 32, columns * beams // 64), _grid(rng, 32, columns * beams // 64, 0.6)]
+  else:
+    grids = [_grid(rng, beams, columns)]
+  casts = [syn.render(scene, frame, g, max_depth=MAX_RANGE) for g in grids]
+  points = np.concatenate([c[0] for c in casts], 1)
+  prim = np.concatenate([c[1] for c in casts])
   rng_ = np.sqrt((points * points).sum(0))
   keep = np.flatnonzero(rng_ <= MAX_RANGE)
   points, prim, rng_ = points.take(keep, axis=1), prim[keep], rng_[keep]
@@ -250,7 +266,7 @@ def sweep_pair(split: str, index: int, options: Options = Options()) -> SweepPai
   if split not in SPLITS:
     raise DataError(f"synthetic_sweep/{split}", f"unknown split; expected one of {SPLITS}")
   rng = np.random.default_rng(SEED_BASE[split] + index)
-  scene, cat_P, inst_P, ground_P = build_scene(rng, options)
+  scene, cat_P, inst_P, ground_P, sensor_height = build_scene(rng, options)
   beams = options.beams or int(rng.choice(BEAMS))
   p1, prim1, noise1 = _cast(scene, 0, rng, options, beams)
   p2, prim2, noise2 = _cast(scene, 1, rng, options, beams)
@@ -258,12 +274,19 @@ def sweep_pair(split: str, index: int, options: Options = Options()) -> SweepPai
   moved = syn.warp(scene, p1, prim1)  # the same points in frame 2
   static = dataclasses.replace(scene, obj_P=np.zeros_like(scene.obj_P))
   ego = syn.warp(static, p1, prim1)
+  # The frame's origin below the sensor (a vehicle frame): every point higher by `lift`, the
+  # frame's motion x -> R x + t becomes x -> R x + t + lift - R lift.
+  lift = np.zeros(3)
+  if options.origin_height is not None:
+    lift[2] = sensor_height - options.origin_height
   z_up = lambda a_3xN: np.ascontiguousarray((_TO_Z_UP @ a_3xN).T, np.float32)
   a, b = scene.a_Kx3x3[0], scene.b_Kx3[0]  # the static world's (the sensor's) motion
+  rotation = _TO_Z_UP @ a @ _TO_Z_UP.T
   return SweepPair(
-    pc1=z_up(p1), pc2=z_up(p2 + noise2), flow=z_up(moved - p1), ego_flow=z_up(ego - p1),
+    pc1=z_up(p1) + lift.astype(np.float32), pc2=z_up(p2 + noise2) + lift.astype(np.float32),
+    flow=z_up(moved - p1), ego_flow=z_up(ego - p1),
     category=cat_P[prim1], instance=inst_P[prim1], ground=ground_P[prim1], ground2=ground_P[prim2],
-    ego_rotation=_TO_Z_UP @ a @ _TO_Z_UP.T, ego_translation=_TO_Z_UP @ b,
+    ego_rotation=rotation, ego_translation=_TO_Z_UP @ b + lift - rotation @ lift,
     name=f"synthetic_sweep/{split}/{index}")
 
 
