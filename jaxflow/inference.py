@@ -17,7 +17,8 @@ flow of its nearest sampled pc1 point (Euclidean; a sampled point keeps its own)
 Raw sweeps (`lidar=True`): jaxflow.sweep.raw_sweep_flow, the ground, the sensor's ego-motion and
 one rigid motion per moving object; every pc1 point gets a row. The method itself runs only on a
 camera's view (under half the azimuth: the non-ground points within `max_range`), or as one more
-start for the fits with `use_network=True`.
+start for the fits with `use_network=True` (predict --lidar with an explicit --method);
+`DeferredPredictor` loads the checkpoint only then.
 """
 
 import dataclasses
@@ -110,37 +111,27 @@ class Predictor:
 
   def predict(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
               max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
-              corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
+              corr_chunk: int | None = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
               lidar: bool = False, up: str | None = None,
               max_range: float | None = ground.DEFAULT_MAX_RANGE, ground_limits: bool = True,
               use_network: bool = False) -> Prediction:
     """The Prediction of every point of pc1 (the module docstring: sampling, full, lidar). `up`:
     the clouds' up axis (default z with lidar, else y, the models' frame; jaxflow.frames): the
-    clouds are rotated into the models' frame for the method and the flow back."""
+    clouds are rotated into the models' frame for the method and the flow back. `corr_chunk`
+    None: the model's own."""
     kwargs = dict(num_iters=num_iters, max_points=max_points, full=full, corr_chunk=corr_chunk,
                   seed=seed)
-    up = up or ("z" if lidar else frames.MODEL_UP)
-    if not lidar:
-      inner = self._predict(frames.to_model(as_cloud(pc1_Nx3, names[0], self.min_points), up),
-                            frames.to_model(as_cloud(pc2_Mx3, names[1], self.min_points), up),
-                            **kwargs)
-      return dataclasses.replace(inner, flow=frames.from_model(inner.flow, up), up=up)
-    kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
-    inner = []  # the Prediction of the kept points (this call's own)
-
-    def estimate(kept1, kept2):  # in the models' frame (frames.in_model_frame)
-      inner.append(self._predict(as_cloud(kept1, kept_names[0], self.min_points),
-                                 as_cloud(kept2, kept_names[1], self.min_points), **kwargs))
-      return inner[-1].flow
-
-    clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
-    flow, info = sweep.raw_sweep_flow(frames.in_model_frame(estimate, up), *clouds, up=up,
-                                      max_range=max_range, names=names,
-                                      ground_limits=ground_limits, use_network=use_network)
-    notes = inner[-1].notes if inner else tuple(n for n in [lopsided(*info.kept)] if n)
-    return Prediction(np.asarray(flow, np.float32), notes, info.kept, info, up)
+    if lidar:
+      return sweep_prediction(lambda: self, pc1_Nx3, pc2_Mx3, names, up, max_range, ground_limits,
+                              use_network, **kwargs)
+    up = up or frames.MODEL_UP
+    inner = self._predict(frames.to_model(as_cloud(pc1_Nx3, names[0], self.min_points), up),
+                          frames.to_model(as_cloud(pc2_Mx3, names[1], self.min_points), up),
+                          **kwargs)
+    return dataclasses.replace(inner, flow=frames.from_model(inner.flow, up), up=up)
 
   def _predict(self, pc1_Nx3, pc2_Mx3, num_iters, max_points, full, corr_chunk, seed):
+    corr_chunk = getattr(self.model, "corr_chunk", 0) if corr_chunk is None else corr_chunk
     if num_iters < 1:
       raise ConfigError(f"num_iters must be >= 1, got {num_iters}")
     if corr_chunk < 0:
@@ -177,6 +168,64 @@ class Predictor:
   def _prediction(self, flow_Nx3, info, notes, used) -> Prediction:
     notes = [*notes, methods.convergence_note(self.method, jax.device_get(info))]
     return Prediction(np.asarray(flow_Nx3, np.float32), tuple(n for n in notes if n), used)
+
+
+def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: str | None = None,
+                     max_range: float | None = ground.DEFAULT_MAX_RANGE,
+                     ground_limits: bool = True, use_network: bool = False,
+                     **kwargs) -> Prediction:
+  """The Prediction of raw sweeps (jaxflow.sweep); `get_predictor()` gives the method's Predictor,
+  called only when the method runs (a camera's view, or `use_network`): a 360-degree sweep loads
+  no network. `kwargs`: Predictor.predict's sampling arguments."""
+  up = up or "z"
+  kwargs = {**dict(num_iters=DEFAULT_ITERS, max_points=DEFAULT_MAX_POINTS, full=False,
+                   corr_chunk=DEFAULT_CORR_CHUNK, seed=0), **kwargs}
+  kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
+  inner = []  # the Prediction of the kept points (this call's own)
+
+  def estimate(kept1, kept2):  # in the models' frame (frames.in_model_frame)
+    predictor = get_predictor()
+    inner.append(predictor._predict(  # pylint: disable=protected-access
+      as_cloud(kept1, kept_names[0], predictor.min_points),
+      as_cloud(kept2, kept_names[1], predictor.min_points), **kwargs))
+    return inner[-1].flow
+
+  clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
+  flow, info = sweep.raw_sweep_flow(frames.in_model_frame(estimate, up), *clouds, up=up,
+                                    max_range=max_range, names=names,
+                                    ground_limits=ground_limits, use_network=use_network)
+  notes = inner[-1].notes if inner else tuple(n for n in [lopsided(*info.kept)] if n)
+  return Prediction(np.asarray(flow, np.float32), notes, info.kept, info, up)
+
+
+class DeferredPredictor:
+  """load_predictor(*args), loaded at its first use: `predict(..., lidar=True)` of a 360-degree
+  sweep never uses it (predict --lidar loads no checkpoint unless the method runs)."""
+
+  def __init__(self, *load_args):
+    self._load_args, self._loaded = load_args, None
+
+  @property
+  def loaded(self) -> bool:
+    return self._loaded is not None
+
+  def get(self) -> Predictor:
+    if self._loaded is None:
+      self._loaded = load_predictor(*self._load_args)
+    return self._loaded
+
+  def predict(self, pc1_Nx3, pc2_Mx3, lidar: bool = False, names=("pc1", "pc2"),
+              up: str | None = None, max_range: float | None = ground.DEFAULT_MAX_RANGE,
+              ground_limits: bool = True, use_network: bool = False, **kwargs) -> Prediction:
+    if not lidar:
+      return self.get().predict(pc1_Nx3, pc2_Mx3, names=names, up=up, **kwargs)
+    return sweep_prediction(self.get, pc1_Nx3, pc2_Mx3, names, up, max_range, ground_limits,
+                            use_network, **kwargs)
+
+  def __getattr__(self, name):  # name, method, method_settings, model, ...: the loaded one's
+    if name.startswith("_"):
+      raise AttributeError(name)
+    return getattr(self.get(), name)
 
 
 @functools.lru_cache(maxsize=8)

@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from jaxflow import ego, rigid, visibility as views
 
 CELL = 0.3  # metres: objects are connected cells seen from above (gaps of a cell bridged)
+PART_CELL = 0.15  # metres: a moved object's parts, connected cells seen from above (no bridging)
 OBJECT_TOP = 2.6  # metres above the ground: higher points (crowns, facades' tops) join no object
 MIN_POINTS = 12
 MAX_HIGH = 0.25  # an object with more of its points above OBJECT_TOP is structure, not a vehicle
@@ -146,9 +147,33 @@ def _search(tree, points_Kx3) -> rigid.Motion:
   return rigid.Motion(np.eye(3), best)
 
 
-def groups(points_Nx3, height_N, cell: float = CELL):
+def _moving_parts(tree, points_Kx3, motion, visibility, ego_motion, truncate) -> np.ndarray:
+  """Bool K: the points of an object that move with `motion`. A group seen from above can join a
+  moving car to the parked car beside it (a gap under two cells): split it by connectivity at
+  PART_CELL, without bridging, and keep still every part of MIN_POINTS that standing still
+  explains clearly better than the motion (`_better`, the test a motion passed against it)."""
+  ij = np.floor(points_Kx3[:, :2] / PART_CELL).astype(np.int64)
+  ij -= ij.min(0)
+  grid = np.zeros(ij.max(0) + 1, bool)
+  grid[ij[:, 0], ij[:, 1]] = True
+  labels, count = ndimage.label(grid, np.ones((3, 3)))
+  part = labels[ij[:, 0], ij[:, 1]]
+  keep = np.ones(len(points_Kx3), bool)
+  if count < 2:
+    return keep
+  still = _costs(tree, points_Kx3, visibility, ego_motion, truncate)
+  moving = _costs(tree, motion.apply(points_Kx3), visibility, ego_motion, truncate)
+  for k in range(1, count + 1):
+    mine = part == k
+    if mine.sum() >= MIN_POINTS and _better(moving[mine], still[mine]):
+      keep[mine] = False
+  return keep
+
+
+def groups(points_Nx3, height_N, cell: float = CELL, bridge: bool = True):
   """Object label of each point (-1: none) by 8-connected occupied cells seen from above, from
-  the points between 0 and OBJECT_TOP above the ground; higher points join the object below."""
+  the points between 0 and OBJECT_TOP above the ground (gaps of a cell bridged unless `bridge`
+  is False); higher points join the object below."""
   low = (height_N > 0) & (height_N < OBJECT_TOP)
   ij = np.floor(points_Nx3[:, :2] / cell).astype(np.int64)
   if not low.any():
@@ -159,7 +184,9 @@ def groups(points_Nx3, height_N, cell: float = CELL):
   inside = (ij >= 0).all(1) & (ij < shape).all(1)
   grid = np.zeros(shape, bool)
   grid[ij[low, 0], ij[low, 1]] = True
-  labels, count = ndimage.label(ndimage.binary_dilation(grid, np.ones((3, 3))), np.ones((3, 3)))
+  if bridge:
+    grid = ndimage.binary_dilation(grid, np.ones((3, 3)))
+  labels, count = ndimage.label(grid, np.ones((3, 3)))
   out = np.full(len(points_Nx3), -1)
   out[inside] = labels[ij[inside, 0], ij[inside, 1]] - 1
   return out, count
@@ -234,6 +261,8 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
       below = np.r_[new_centre[:2], centre[2]][None]  # the ground under the new place
       rise = surface.height(centre[None])[0] - surface.height(below)[0]
       best = rigid.Motion(best.rotation, best.translation + [0, 0, rise])
+    parts = _moving_parts(tree, pts, best, visibility, ego_motion, truncate)
+    idx, pts = idx[parts], pts[parts]
     flow[idx] = _world(best, ego_motion).flow(pts)
     yaw = float(np.degrees(np.arctan2(best.rotation[1, 0], best.rotation[0, 0])))
     moved.append((len(idx), best.translation, yaw, best_name))

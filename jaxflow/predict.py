@@ -25,12 +25,14 @@ Cloud size (jaxflow.inference): clouds above --max_points (config.eval.num_point
 and the flow mapped back to every PC1 point; --full (or --max_points 0) uses whole clouds, the
 correlation built --corr_chunk rows at a time. --seed seeds the sampling.
 
-Raw sweeps (--lidar, jaxflow.sweep): the ground (local planes along --up: z, the LiDAR convention;
-y for a camera frame such as KITTI's), the sensor's ego-motion (a robust ICP of the two sweeps) and
-one rigid motion per moving object; every other point, ground and far points included, moves with
-the ego-motion. A note says what was found. The method runs only on a camera's view (under half the
-azimuth): on its non-ground points within --max_range (35 m), the others getting the rigid motion of
-its static part. --noground_limits accepts a ground the checks refuse.
+Raw sweeps (--lidar, jaxflow.sweep): the ground if the sweep has one (local planes along --up: z,
+the LiDAR convention; y for a camera frame such as KITTI's), the sensor's ego-motion (GICP of the
+two sweeps) and one rigid motion per moving object; every other point, ground and far points
+included, moves with the ego-motion. A note says what was found. The method runs on a camera's view
+(under half the azimuth: its non-ground points within --max_range, 35 m, the others getting the
+rigid motion of its static part) and, on a 360-degree sweep, only when --method is given: its flow
+is then one more start of the fits (slow; benchmarks/REAL_SWEEPS.md). Otherwise no checkpoint is
+loaded. --noground_limits skips the up-axis check.
 
 Model. The checkpoint (default: the shipped jaxflow/checkpoints/jaxflow_synthetic/) carries its
 config: the model is built from it. --config (default configs/default.py:eval) only sets evaluation
@@ -74,12 +76,11 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   flags.DEFINE_string("render", None, "Also draw the flow of this pair: FILE.png a top view in --up "
                       "(speed relative to the ego-motion), FILE.html a 3D viewer (extra 'viewer').")
   flags.DEFINE_bool("lidar", False, "Raw sweeps (jaxflow.sweep): the ground (local planes along "
-                    "--up), the sensor's ego-motion (robust ICP) and one rigid motion per moving "
-                    "object; the method runs only on a camera's view (the points within "
-                    "--max_range off the ground).")
-  flags.DEFINE_bool("ground_limits", True, "--lidar: refuse a ground that cannot be one (under a "
-                    "wrong --up, > 5 m below the sensor, most of a sweep); --noground_limits "
-                    "accepts it.")
+                    "--up), the sensor's ego-motion (GICP) and one rigid motion per moving "
+                    "object; the method runs on a camera's view (the points within --max_range "
+                    "off the ground), on a sweep only when --method is given (a start).")
+  flags.DEFINE_bool("ground_limits", True, "--lidar: refuse an --up under which the sweep's "
+                    "largest plane stands upright near the origin; --noground_limits skips it.")
   flags.DEFINE_enum("up", None, ["x", "y", "z"], "The clouds' up axis (z: LiDAR; y: the models' "
                     "frame): rotated into the models' frame, the flow back. Default: z with "
                     "--lidar, else y.")
@@ -116,14 +117,18 @@ def main(argv):
 
   pc1, note1 = inference.read_cloud(pc1_path, FLAGS.columns)
   pc2, note2 = inference.read_cloud(pc2_path, FLAGS.columns)
-  predictor = inference.load_predictor(FLAGS.checkpoint, config, model_fields, FLAGS.method,
-                                       FLAGS.steps, FLAGS.objective)
+  load = (FLAGS.checkpoint, config, model_fields, FLAGS.method, FLAGS.steps, FLAGS.objective)
+  # --lidar: the method runs on a camera's view, or as a start of the fits when --method is given;
+  # a 360-degree sweep alone loads no checkpoint.
+  predictor = (inference.DeferredPredictor(*load) if FLAGS.lidar else
+               inference.load_predictor(*load))
+  use_method = FLAGS.lidar and FLAGS["method"].present
   max_points, num_iters = config.eval.num_points, config.eval.num_iters
-  corr_chunk = getattr(predictor.model, "corr_chunk", 0)  # the checkpoint's, or --corr_chunk
   prediction = predictor.predict(
     pc1, pc2, num_iters=num_iters, max_points=max_points, full=not max_points,
-    corr_chunk=corr_chunk, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=FLAGS.lidar,
-    up=FLAGS.up, max_range=FLAGS.max_range, ground_limits=FLAGS.ground_limits)
+    corr_chunk=None, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=FLAGS.lidar,
+    up=FLAGS.up, max_range=FLAGS.max_range, ground_limits=FLAGS.ground_limits,
+    use_network=use_method)
   up = prediction.up
   if prediction.sweep is not None:
     print(f"note: {prediction.sweep.note()}", file=sys.stderr)
@@ -147,8 +152,8 @@ def main(argv):
   sweep_only = prediction.sweep is not None and prediction.sweep.ego.start != "flow_fn"
   if sweep_only:  # a 360-degree sweep: jaxflow.sweep's fits, the method did not run
     how = (f"ground, ego-motion and {len(prediction.sweep.objects.moved)} moving objects "
-           "(jaxflow.sweep)" + ("; the network's flow a start" if prediction.sweep.used_network
-                                 else ""))
+           "(jaxflow.sweep)" + (f"; method {FLAGS.method}'s flow a start"
+                                 if prediction.sweep.used_network else "; no method run"))
   else:
     how = "ground and far points removed; " if FLAGS.lidar else ""
     how += "; ".join(_used(name, n, max_points) for name, n in zip(("PC1", "PC2"), prediction.used))
@@ -156,7 +161,8 @@ def main(argv):
     how += f"; method {FLAGS.method}" + (" at every point" if FLAGS.method == "optimise" else "")
     if FLAGS.method == "nsfp":
       how += f" ({predictor.method_settings.objective} objective)"
-  print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points ({how}; {predictor.name})",
+  source = predictor.name if not FLAGS.lidar or predictor.loaded else "no checkpoint loaded"
+  print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points ({how}; {source})",
         file=sys.stderr)
   for warning in warnings:
     print(f"warning: {warning}", file=sys.stderr)
@@ -164,7 +170,8 @@ def main(argv):
     from jaxflow import viewer  # pylint: disable=import-outside-toplevel  (matplotlib: only here)
     viewer.render(FLAGS.render, pc1, pc2, flow_Nx3, up=up, sweep=prediction.sweep,
                   title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
-    print(f"{FLAGS.render}: top view (jaxflow.viz) or 3D viewer (.html)", file=sys.stderr)
+    what = "3D viewer (jaxflow.viewer)" if FLAGS.render.endswith(".html") else "top view"
+    print(f"{FLAGS.render}: {what} of the pair and its flow", file=sys.stderr)
 
 
 def run(default_method: str = inference.DEFAULT_METHOD, description: str | None = None):

@@ -63,7 +63,7 @@ class SweepInfo:
             f"{len(self.objects.moved)} of {self.objects.candidates} candidate objects move "
             f"({moved} points); the other {self.kept[0] + self.far[0] + self.ground[0] - moved} "
             "PC1 points get the ego-motion flow"
-            + ("; the network's flow was a start" if self.used_network else "")
+            + ("; the method's flow was a start" if self.used_network else "")
             + "".join(f"\nnote: {n}" for n in self.notes))
 
 

@@ -125,8 +125,7 @@ def toy_args(command: str, cwd: Path, checkpoint: Path) -> list[str] | None:
   """The argv of a documented command at toy size (point files written into `cwd`), or None."""
   argv = shlex.split(command.replace("[", "").replace("]", ""))
   argv = [{"PC1": "pc1.ply", "PC2": "pc2.ply"}.get(a, a) for a in argv]  # as README.md's
-  if argv[0] in ("python", "python3"):
-    argv[0] = sys.executable
+  argv = _this_python(argv)
   if argv[1] in ("train.py", "evaluate.py"):
     argv[1] = str(ROOT / argv[1])
   tool = argv[2] if argv[1] == "-m" else Path(argv[1]).name
@@ -159,6 +158,12 @@ def toy_args(command: str, cwd: Path, checkpoint: Path) -> list[str] | None:
     out[i + 1] = str(cwd / Path(out[i + 1]).name)
     return out + [f"--config.{k}={v}" for k, v in TRAIN_TOY.items()]
   return None
+
+
+def _this_python(argv: list[str]) -> list[str]:
+  """`python` / `python3` of a documented command as the interpreter running the tests (a venv
+  that is not activated: PATH's python may lack the project's packages)."""
+  return [sys.executable, *argv[1:]] if argv and argv[0] in ("python", "python3") else argv
 
 
 def _run(argv, cwd):
@@ -199,8 +204,8 @@ def test_every_documented_command_runs_at_toy_size(tmp_path):
   assert done[0] == 0, done[2][-2000:]  # its toy run is the checkpoint of the other commands
   argv = shlex.split(main_job)
   checkpoint = tmp_path / Path(argv[argv.index("--workdir") + 1]).name
-  jobs = {(w, c): (shlex.split(c.replace("[", "").replace("]", "")) + ["--print_config"], ROOT)
-          for w, c in commands if plan(c)[0] == "config"}
+  jobs = {(w, c): (_this_python(shlex.split(c.replace("[", "").replace("]", "")))
+                   + ["--print_config"], ROOT) for w, c in commands if plan(c)[0] == "config"}
   seen = {_toy_key(main_job, checkpoint)}  # the main job ran above
   for i, (where, command) in enumerate(c for c in commands if plan(c[1])[0] == "run"):
     same = _toy_key(command, checkpoint)
