@@ -115,3 +115,23 @@ def test_a_near_car_of_thousands_of_points_gets_the_motion_of_all_of_them():
   assert len(found.moved) == 1
   # Measured: 0.021 m; 0.078 with the motion of the 150 points it was searched on.
   assert np.linalg.norm(flow - motion.flow(pc1), axis=1).mean() < 0.04
+
+
+def test_a_parked_car_joined_to_a_passing_one_stays_still():
+  """A car passing 0.4 m beside a parked one, 1.5 m a frame: seen from above the two are one
+  group (gaps of a cell are bridged); the part that standing still explains stays still."""
+  size = np.array([4.5, 1.8, 1.5])
+  faces = ["-y", "-x", "top"]
+  parked = lambda r: _visible_faces(r, (5.0, 5.2), size, 1500, faces)
+  passing = lambda r, x: _visible_faces(r, (x, 3.0), size, 1500, faces)
+  pc1 = np.concatenate([parked(np.random.default_rng(5)), passing(np.random.default_rng(6), 4.0)])
+  pc2 = np.concatenate([parked(np.random.default_rng(7)), passing(np.random.default_rng(8), 5.5)])
+  height = pc1[:, 2]
+  label, _ = objects.groups(pc1, height)
+  assert len(set(label)) == 1  # one group
+  still = rigid.Motion(np.eye(3), np.zeros(3))
+  flow, found = objects.object_flow(pc1, pc2, np.zeros(len(pc1), bool), np.zeros(len(pc2), bool),
+                                    still)
+  assert len(found.moved) == 1
+  np.testing.assert_array_equal(flow[:1500], 0.0)  # the parked car
+  assert np.linalg.norm(flow[1500:] - [1.5, 0, 0], axis=1).mean() < 0.15

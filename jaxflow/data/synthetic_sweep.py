@@ -228,7 +228,9 @@ def build_scene(rng, opt: Options = Options()):
       add(_cyclist(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z), BICYCLIST,
           syn._I, (0, 0, v * math.cos(heading)))
   if opt.movers:
-    for lane in (0.8 - road / 2, road / 2 - 0.8):  # traffic: +z on the left lane, -z on the right
+    inner = 0.8 if not opt.dense else 1.3  # lane centre from the parking strip (dense: 0.6-1.1
+    # m between a passing car and a parked one)
+    for lane in (inner - road / 2, road / 2 - inner):  # traffic: +z on the left lane, -z right
       heading = 0.0 if lane < 0 else math.pi
       z = rng.uniform(-60, -40)
       while z < 60:
