@@ -123,7 +123,7 @@ def kiss(pc1, pc2):
 
 def small_gicp_default(pc1, pc2, kind):
   import small_gicp  # pylint: disable=import-outside-toplevel
-  t = small_gicp.align(pc2, pc1, registration_type=kind, num_threads=ego.THREADS)
+  t = small_gicp.align(pc2, pc1, registration_type=kind, num_threads=ego.GICP_THREADS)
   return rigid.Motion(t.T_target_source[:3, :3], t.T_target_source[:3, 3])
 
 

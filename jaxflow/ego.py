@@ -43,7 +43,10 @@ BLOB = 0.15  # metres: a neighbourhood spread less than this in every direction 
 SEARCH_YAW_DEG = np.arange(-6.0, 6.01, 1.0)
 SEARCH_X = np.arange(-4.0, 4.01, 0.5)  # forward, metres a frame
 SEARCH_Y = np.arange(-1.5, 1.51, 0.5)
-THREADS = max(1, min(4, os.cpu_count() or 1))
+THREADS = max(1, min(4, os.cpu_count() or 1))  # the k-d tree queries' workers
+# small_gicp on one thread: its parallel sums differ by rounding from run to run (1 of 320k flow
+# values by 1e-8 under load), and the same call must give the same flow (2.0 s a pair, 1.55 s on 2).
+GICP_THREADS = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,10 +97,11 @@ class Registration:
     if key not in self._sources:
       self._sources[key] = small_gicp.preprocess_points(
         self.pc1, downsampling_resolution=voxel, num_neighbors=neighbours,
-        num_threads=THREADS)[0]
+        num_threads=GICP_THREADS)[0]
     if key not in self._targets:
       self._targets[key] = small_gicp.preprocess_points(
-        self.pc2, downsampling_resolution=voxel, num_neighbors=neighbours, num_threads=THREADS)
+        self.pc2, downsampling_resolution=voxel, num_neighbors=neighbours,
+        num_threads=GICP_THREADS)
     return self._sources[key], *self._targets[key]
 
   def gicp(self, start: rigid.Motion, scales=SCALES) -> rigid.Motion:
@@ -109,7 +113,7 @@ class Registration:
         break
       result = small_gicp.align(target, source, tree, init_T_target_source=transform,
                                 registration_type="GICP", max_correspondence_distance=match,
-                                num_threads=THREADS, max_iterations=GICP_ITERATIONS)
+                                num_threads=GICP_THREADS, max_iterations=GICP_ITERATIONS)
       transform = result.T_target_source
     return motion_from(transform[:3, :3], transform[:3, 3])
 
@@ -127,11 +131,6 @@ class Registration:
   def residual(self) -> "Residual":
     source, target, _ = self.clouds(RESIDUAL_VOXEL, RESIDUAL_NEIGHBOURS)
     return Residual(source.points()[:, :3], target.points()[:, :3], target.normals()[:, :3])
-
-
-def gicp(pc1_Nx3, pc2_Mx3, start: rigid.Motion, scales=SCALES) -> rigid.Motion:
-  """GICP of pc1 onto pc2 from `start` (Registration.gicp, for one start)."""
-  return Registration(pc1_Nx3, pc2_Mx3).gicp(start, scales)
 
 
 class Residual:

@@ -1,5 +1,6 @@
 """Shared test fixtures: paths to the project's shared samples (absent in a user's clone)."""
 
+import hashlib
 import os
 import pathlib
 import sys
@@ -13,8 +14,10 @@ SHARED = pathlib.Path(os.environ.get("JAXFLOW_SHARED", ROOT.parent / "shared"))
 
 # Compiled programs are shared by the tests, their subprocesses and both xdist workers through jax's
 # persistent cache (the models of the tests are few; compiling them is most of the suite's time).
+# One cache per checkout (its path hashed): another clone's programs are never read.
 CACHE = os.environ.setdefault(
-  "JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "jaxflow-test-xla-cache"))
+  "JAX_COMPILATION_CACHE_DIR", os.path.join(
+    tempfile.gettempdir(), f"jaxflow-test-xla-cache-{hashlib.sha1(bytes(ROOT)).hexdigest()[:10]}"))
 jax.config.update("jax_compilation_cache_dir", CACHE)
 # ... and compiled with XLA's backend optimisation off: with no cache (a fresh clone) the suite took
 # 18:14 instead of 22:56 (2-core CPU). The programs compute the same up to rounding (LLVM's passes

@@ -8,7 +8,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -23,9 +22,6 @@ from jaxflow.data import BatchLoader, eval_batches, open_dataset
 from jaxflow.errors import ConfigError
 
 REPO = Path(__file__).absolute().parent.parent
-CACHE = os.environ.setdefault(
-  "JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "jaxflow-test-xla-cache")
-)
 STEPS, EVERY = 12, 4
 FLAGS = ["--config", "configs/default.py:smoke", f"--config.train.num_steps={STEPS}",
          f"--config.train.checkpoint_every={EVERY}", f"--config.train.log_every={EVERY}"]

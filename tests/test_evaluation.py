@@ -6,7 +6,6 @@ import os
 import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import jax
@@ -21,9 +20,7 @@ from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.metrics import METRICS
 
 REPO = Path(__file__).absolute().parent.parent
-CACHE = os.environ.setdefault(
-  "JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "jaxflow-test-xla-cache")
-)
+from conftest import CACHE  # (the one compilation cache of this checkout)
 jax.config.update("jax_compilation_cache_dir", CACHE)
 STEP = 1  # the step of conftest's smoke_checkpoint
 

@@ -7,7 +7,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -19,9 +18,7 @@ from jaxflow import checkpointing, training
 from jaxflow.errors import CheckpointError
 
 REPO = Path(__file__).absolute().parent.parent
-CACHE = os.environ.setdefault(
-  "JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "jaxflow-test-xla-cache")
-)
+from conftest import CACHE  # (the one compilation cache of this checkout)
 jax.config.update("jax_compilation_cache_dir", CACHE)
 TOTAL_STEPS = 24  # configs/default.py:smoke
 EVERY = 6

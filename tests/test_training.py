@@ -5,7 +5,6 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 import textwrap
 from pathlib import Path
 
@@ -14,7 +13,7 @@ import numpy as np
 import pytest
 from flax import traverse_util
 
-from conftest import xla_flags
+from conftest import CACHE, xla_flags
 from jaxflow.configs import default, stage2_synthetic
 from jaxflow import checkpointing, evaluation, events, train_state, training
 from jaxflow.data import BatchLoader, open_dataset
@@ -25,9 +24,6 @@ STEPS = 24  # the last step of configs/default.py:smoke
 
 REPO = Path(__file__).absolute().parent.parent
 # Compiled programs are shared by the tests (and their subprocesses) through jax's persistent cache.
-CACHE = os.environ.setdefault(
-  "JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "jaxflow-test-xla-cache")
-)
 jax.config.update("jax_compilation_cache_dir", CACHE)
 
 
