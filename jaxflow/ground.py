@@ -125,7 +125,7 @@ def fit_ground(points_Nx3, up: str = "z", max_range: float | None = DEFAULT_MAX_
   return Plane(normal, offset, int((np.abs(cand @ normal + offset) < INLIER).sum()))
 
 
-# Local ground: a plane per cell, fitted to the lowest points of the cells around it (issue 26).
+# Local ground: a plane per cell, fitted to the lowest points of the cells around it.
 SURFACE_CELL = 2.0  # metres: cells of the height map
 SURFACE_WINDOWS = (5, 11, 23)  # cells: the windows a cell's plane is fitted over, smallest first
 SURFACE_ABOVE = 0.2  # metres: a cell whose lowest point is this far above the surface is no ground

@@ -4,7 +4,7 @@
     print(info.note())
 
 Raw sweeps (360 degrees, ground kept, independently sampled) are mostly static world, so the
-sensor's own motion is most of the flow (issue 26):
+sensor's own motion is most of the flow:
 1. the ground of each sweep, if it has one: local planes per cell (jaxflow.ground.fit_surface);
    an up axis under which the sweep's largest plane stands upright near the origin is refused
    (`ground_limits=False` overrides), a ground that looks odd is noted; a sweep whose ground was

@@ -1,4 +1,4 @@
-"""Raw 360-degree LiDAR sweep pairs, as a driving car's roof sensor records them (issue 26).
+"""Raw 360-degree LiDAR sweep pairs, as a driving car's roof sensor records them.
 
     sweep = sweep_pair("val", 3)          # a SweepPair: pc1, pc2, flow, ego flow, labels, ground
     ds = open_dataset("synthetic_sweep:20", "test")   # as jaxflow Pairs (evaluate.py)
