@@ -8,9 +8,10 @@
 errors, a config file that does not load and a `--config.FIELD` that names no field print
 `error: <message>` and exit with 2, without a traceback; anything else is a bug and keeps its
 traceback. `--print_config` prints the config (overrides applied) with its fields' comments.
-`--help` (`-h`) prints the tool's description and flags and exits with 0 (also into a closed pipe,
-`--help | head`). Flags are spelled with underscores (absl's convention); the old hyphenated
-spellings and renamed flags are refused with the new name (`RENAMED`).
+`--help` (`-h`) prints the tool's summary and usage, its flags, then the rest of its description,
+and exits with 0 (also into a closed pipe, `--help | head`). Flags are spelled with underscores
+(absl's convention); the old hyphenated spellings and renamed flags are refused with the new name
+(`RENAMED`).
 
 The options predict and evaluate.py share mean the same in both (`define_run_flags`).
 """
@@ -190,10 +191,13 @@ def run_settings(config):
 
 
 def _print_help(description: str | None, full: bool):
-  doc = (description or "").strip()
+  """The description's summary and usage lines, the flags, then the rest of the description."""
+  paragraphs = (description or "").strip().split("\n\n")
+  usage = next((i + 1 for i, p in enumerate(paragraphs) if p.startswith("    ")), 1)
+  head, rest = "\n\n".join(paragraphs[:usage]), "\n\n".join(paragraphs[usage:])
   flags_help = flags.FLAGS.get_help() if full else flags.FLAGS.main_module_help()
-  _write_and_exit(f"{doc}\n\nFlags ({'all' if full else '--helpfull: all of them'}):\n"
-                  f"{flags_help}\n")
+  _write_and_exit(f"{head}\n\nFlags ({'all' if full else '--helpfull: all of them'}):\n"
+                  f"{flags_help}\n" + (f"\n{rest}\n" if rest else ""))
 
 
 def _parse_flags(argv: list[str], config_names=()) -> list[str]:

@@ -250,6 +250,9 @@ def test_every_tool_has_a_help_that_exits_0_also_into_a_closed_pipe():
     if tool in ("jaxflow.evaluate", "jaxflow.train", "evaluate.py", "train.py"):
       for flag in ("--coordinator", "--num_processes", "--process_id"):
         assert flag in out, (tool, flag)
+    if tool == "jaxflow.predict":  # usage and flags first, the long description after them
+      assert out.index("python -m jaxflow.predict PC1 PC2") < out.index("Flags (") < out.index(
+        "--out:") < out.index("Method (--method"), out[:3000]
     if tool in ("jaxflow.predict", "jaxflow.evaluate", "jaxflow.nsfp"):
       for flag in ("--method", "--iters", "--max_points", "--full", "--corr_chunk", "--seed",
                    "--save_flows", "--steps", "--objective"):  # the shared flags, in both tools
