@@ -222,4 +222,10 @@ def test_every_imported_package_is_declared():
 def test_readme_states_the_commands_ci_runs():
   readme, ci = (REPO / "README.md").read_text(), (REPO / ".ci" / "run").read_text()
   assert 'python -m pip install -q -e ".[dev]"' in ci and "\npython -m pytest -q\n" in ci
-  assert 'python3 -m pip install -e ".[dev]" && python3 -m pytest -q' in readme
+  commands = ['python3 -m pip install -e ".[dev]"',
+              'python3 -m pip install --no-deps "av2==0.3.6" "bucketed-scene-flow-eval==2.0.25"',
+              "python3 -m pytest -q"]
+  assert "\n".join(f"    {c}" for c in commands) in readme  # the README's block, in CI's order
+  for command in commands[1:2]:  # each evaluator CI installs, pinned as the README says
+    for package in command.split()[-2:]:
+      assert f"--no-deps {package}" in ci, package
