@@ -24,6 +24,7 @@ forms: as generated (a roof sensor at the origin), a dense city seen from Argove
 """
 
 import argparse
+import importlib.util
 import json
 import warnings
 import pathlib
@@ -132,11 +133,8 @@ def ego_rows(pc1, pc2, truth):
   methods = {"jaxflow.ego": lambda: ego.estimate(pc1, pc2).motion,
              "small_gicp GICP (defaults)": lambda: small_gicp_default(pc1, pc2, "GICP"),
              "small_gicp VGICP (defaults)": lambda: small_gicp_default(pc1, pc2, "VGICP")}
-  try:
-    import kiss_icp  # pylint: disable=import-outside-toplevel,unused-import
+  if importlib.util.find_spec("kiss_icp"):  # optional: measured where installed
     methods["KISS-ICP (two frames)"] = lambda: kiss(pc1, pc2)
-  except ImportError:
-    pass
   out = {}
   for name, fn in methods.items():
     start = time.perf_counter()
@@ -185,41 +183,40 @@ def main():
                         flow=flow_row(pc1, pc2, truth)))
     print(name, json.dumps(results[-1]["flow"]), flush=True)
   real = [r for r in results if not any(r["name"].startswith(f) for f in FORMS)]
+  # (label, its results): each real sample alone, then each generator form's pairs together
+  labelled = [(r["name"], [r]) for r in real] + [
+    (f, [r for r in results if r["name"].startswith(f)]) for f in FORMS]
 
-  def group(form):
-    return [r for r in results if r["name"].startswith(form)]
+  def table(title, key, cell):
+    """One markdown table: a column per method of results[i][key], cell(values of the rows)."""
+    print(f"\n## {title}\n")
+    names = list(results[0][key])
+    print("| sample | pairs | " + " | ".join(names) + " |")
+    print("|---|---|" + "---|" * len(names))
+    for label, rows in labelled:
+      cells = [cell(np.array([r[key][n] for r in rows], float)) for n in names]
+      print(f"| {label} | {len(rows)} | " + " | ".join(cells) + " |")
 
-  print("\n## Ground: share of pc1 taken as ground (precision / recall where known), seconds\n")
-  names = list(results[0]["ground"])
-  print("| sample | pairs | " + " | ".join(names) + " |")
-  print("|---|---|" + "---|" * len(names))
-  for label, rows in [(r["name"], [r]) for r in real] + [(f, group(f)) for f in FORMS]:
-    cells = []
-    for n in names:
-      v = np.nanmean([r["ground"][n] for r in rows], axis=0)
-      cells.append(f"{v[0]:.3f}" + ("" if np.isnan(v[1]) else f" ({v[1]:.3f} / {v[2]:.3f})")
-                   + f", {v[3]:.2f} s")
-    print(f"| {label} | {len(rows)} | " + " | ".join(cells) + " |")
-  print("\n## Ego-motion: error, cm / deg (mean, max over pairs), seconds\n")
-  names = list(results[0]["ego"])
-  print("| sample | pairs | " + " | ".join(names) + " |")
-  print("|---|---|" + "---|" * len(names))
-  for label, rows in [(r["name"], [r]) for r in real] + [(f, group(f)) for f in FORMS]:
-    cells = []
-    for n in names:
-      v = np.array([r["ego"][n] for r in rows])
-      if np.isnan(v[:, 0]).all():
-        cells.append(f"-, {v[:, 2].mean():.2f} s")
-      elif len(v) == 1:
-        cells.append(f"{v[0, 0]:.1f} / {v[0, 1]:.3f}, {v[0, 2]:.2f} s")
-      else:
-        cells.append(f"{v[:, 0].mean():.1f} ({v[:, 0].max():.1f}) / {v[:, 1].mean():.3f} "
-                     f"({v[:, 1].max():.3f}), {v[:, 2].mean():.2f} s")
-    print(f"| {label} | {len(rows)} | " + " | ".join(cells) + " |")
+  def ground_cell(v):
+    v = np.nanmean(v, axis=0)
+    return (f"{v[0]:.3f}" + ("" if np.isnan(v[1]) else f" ({v[1]:.3f} / {v[2]:.3f})")
+            + f", {v[3]:.2f} s")
+
+  def ego_cell(v):
+    if np.isnan(v[:, 0]).all():
+      return f"-, {v[:, 2].mean():.2f} s"
+    if len(v) == 1:
+      return f"{v[0, 0]:.1f} / {v[0, 1]:.3f}, {v[0, 2]:.2f} s"
+    return (f"{v[:, 0].mean():.1f} ({v[:, 0].max():.1f}) / {v[:, 1].mean():.3f} "
+            f"({v[:, 1].max():.3f}), {v[:, 2].mean():.2f} s")
+
+  table("Ground: share of pc1 taken as ground (precision / recall where known), seconds",
+        "ground", ground_cell)
+  table("Ego-motion: error, cm / deg (mean, max over pairs), seconds", "ego", ego_cell)
   print("\n## Flow (`predict --lidar`'s pipeline)\n")
   print("| sample | pairs | FD | FS | BS | three-way | other | s / pair |")
   print("|---|---|---|---|---|---|---|---|")
-  for label, rows in [(r["name"], [r]) for r in real] + [(f, group(f)) for f in FORMS]:
+  for label, rows in labelled:
     f = [r["flow"] for r in rows]
     mean = lambda k: float(np.nanmean([x.get(k, np.nan) for x in f]))
     other = ""

@@ -31,10 +31,9 @@ def test_recovered_to_a_centimetre_from_each_start(slow_sweep):
   off = rigid.Motion(np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ true.rotation,
                      true.translation + [0.3, -0.2, 0.05])  # network-like: 1 deg, 0.4 m off
   result = fit(s, starts={"network": off})
-  assert set(result.starts) - {"zero+gicp+trimmed", "network+gicp+trimmed",
-                               "search+gicp+trimmed"} == {"zero", "zero+gicp", "network+gicp",
-                                                          "search+gicp"}
-  assert len(result.starts) == 5  # and the best fit refined on its inliers
+  refined = [name for name in result.starts if name.endswith("+gicp+trimmed")]
+  assert set(result.starts) - set(refined) == {"zero", "zero+gicp", "network+gicp", "search+gicp"}
+  assert len(refined) == 1  # the best fit, refined on its inliers
   for name, (motion, _) in result.starts.items():
     if name == "zero":
       continue

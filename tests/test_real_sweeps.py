@@ -90,7 +90,7 @@ def test_a_500_point_sweep_gives_finite_flows_and_a_note(labelled):
 
 def test_a_wrong_up_on_a_sweep_without_ground_runs_with_a_note(labelled):
   raw1, pc2, truth, classes = labelled
-  order = [1, 2, 0]  # the same sweeps given with x up: --up y on them is wrong
+  order = [1, 2, 0]  # the same sweeps as (y, z, x): their up is now y, so --up x is wrong
   flow, info = sweep.raw_sweep_flow(None, raw1[:, order], pc2[:, order], up="x")
   assert np.isfinite(flow).all()
   assert any("a wrong --up?" in n for n in info.notes), info.notes

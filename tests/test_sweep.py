@@ -5,7 +5,7 @@ import pytest
 
 from jaxflow import inference, metrics, sweep
 from jaxflow.data import synthetic_sweep as ss
-from jaxflow.errors import DataError
+from jaxflow.errors import CheckpointError, DataError
 
 SMALL = ss.Options(scale=0.3)  # ~30k points a sweep: seconds
 
@@ -117,3 +117,18 @@ def test_a_camera_view_uses_the_given_flow_and_its_rigid_part():
   static = s.category[front1] == 0  # the given flow where it ran, its rigid part elsewhere
   assert np.median(np.linalg.norm(flow - ego_flow, axis=1)[static]) < 0.01
   np.testing.assert_allclose(info.motion.translation, s.ego_translation, atol=0.02)
+
+
+def test_a_sweep_loads_no_checkpoint_until_the_method_runs(tmp_path):
+  """predict --lidar's predictor (inference.DeferredPredictor): a 360-degree sweep never reads the
+  checkpoint (here a missing one, which would raise), a camera's view and an explicit method do."""
+  missing = tmp_path / "no_checkpoint"
+  deferred = inference.DeferredPredictor(str(missing), None, (), "network", None, None)
+  s = ss.sweep_pair("val", 5, ss.Options(scale=0.1))
+  got = deferred.predict(s.pc1, s.pc2, lidar=True, up="z")
+  assert not deferred.loaded and got.flow.shape == s.pc1.shape
+  front1 = np.abs(np.arctan2(s.pc1[:, 1], s.pc1[:, 0])) < np.radians(45)
+  front2 = np.abs(np.arctan2(s.pc2[:, 1], s.pc2[:, 0])) < np.radians(45)
+  for pc1, pc2, use_network in ((s.pc1[front1], s.pc2[front2], False), (s.pc1, s.pc2, True)):
+    with pytest.raises(CheckpointError, match="no_checkpoint: no such checkpoint"):  # load attempted
+      deferred.predict(pc1, pc2, lidar=True, up="z", use_network=use_network)
