@@ -85,7 +85,7 @@ class Found:
 
 def _normals(points_Mx3, k: int = 10) -> np.ndarray:
   """Unit normal of each point's k-neighbourhood (least-spread direction)."""
-  _, idx = cKDTree(points_Mx3).query(points_Mx3, min(k, len(points_Mx3)))
+  _, idx = cKDTree(points_Mx3).query(points_Mx3, min(k, len(points_Mx3)), workers=-1)
   centred = points_Mx3[idx] - points_Mx3[idx].mean(1, keepdims=True)
   return np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1][:, :, 0]
 
@@ -126,6 +126,18 @@ def _join_world(best_N, motions, bodies_found, pc1, normals_Nx3, target, view, s
   return out
 
 
+def _cross(a_Nx3, b_Nx3):
+  """Row-wise a x b (np.cross without its axis handling, which dominated the ICP's time)."""
+  return np.stack([a_Nx3[:, 1] * b_Nx3[:, 2] - a_Nx3[:, 2] * b_Nx3[:, 1],
+                   a_Nx3[:, 2] * b_Nx3[:, 0] - a_Nx3[:, 0] * b_Nx3[:, 2],
+                   a_Nx3[:, 0] * b_Nx3[:, 1] - a_Nx3[:, 1] * b_Nx3[:, 0]], 1)
+
+
+def _skew(v_3):
+  """[v]_x: the matrix of x -> v x x."""
+  return np.array([[0.0, -v_3[2], v_3[1]], [v_3[2], 0.0, -v_3[0]], [-v_3[1], v_3[0], 0.0]])
+
+
 class _Target:
   """pc2 prepared once: its k-d tree and normals."""
 
@@ -138,7 +150,7 @@ class _Target:
     """Per point: its distance to the plane of the nearest pc2 point (`truncate` when none is
     within `truncate`). Not the distance to the point: where two sweeps sample a surface at other
     places (a LiDAR's rings on a facade), that distance favours motions that line the samples up."""
-    d, j = self.tree.query(moved_Nx3, distance_upper_bound=truncate)
+    d, j = self.tree.query(moved_Nx3, distance_upper_bound=truncate, workers=-1)
     near = np.isfinite(d)
     out = np.full(len(d), truncate)
     out[near] = np.minimum(np.abs(np.sum((moved_Nx3[near] - self.points[j[near]])
@@ -151,23 +163,27 @@ class _Target:
     for i in range(rounds):
       scale = scales[min(i * len(scales) // rounds, len(scales) - 1)]
       q = src_Kx3 @ rotation.T + translation
-      d, j = self.tree.query(q)
+      d, j = self.tree.query(q, workers=-1)
       n = self.normals[j]
       diff = q - self.points[j]
       r = np.sum(diff * n, 1)
       w = (d < 4 * scale) / (1 + (r / scale) ** 2) ** 2  # Geman-McClure, far matches left out
       if w.sum() < 6:
         break
-      jac = np.c_[np.cross(q, n), n]
+      jac = np.concatenate([_cross(q, n), n], 1)
       h = jac.T @ (jac * w[:, None]) + 1e-6 * np.eye(6)
       g = jac.T @ (w * r)
+      # The point-to-point rows, d(q_axis) / d(omega, t) = (q x e_axis, e_axis), summed in closed
+      # form: sum wp [[|q|^2 I - q q^T, [q]_x], [-[q]_x, I]] and sum wp (q x diff, diff).
       wp = settings.point_weight * w
-      for axis in range(3):  # point-to-point rows: d(q_axis) / d(omega, t)
-        e = np.zeros(3)
-        e[axis] = 1.0
-        jac_a = np.c_[np.cross(q, e), np.broadcast_to(e, q.shape)]
-        h += jac_a.T @ (jac_a * wp[:, None])
-        g += jac_a.T @ (wp * diff[:, axis])
+      qw = q * wp[:, None]
+      h[:3, :3] += np.eye(3) * np.sum(qw * q) - q.T @ qw
+      skew = _skew(qw.sum(0))
+      h[:3, 3:] += skew
+      h[3:, :3] -= skew
+      h[3:, 3:] += np.eye(3) * wp.sum()
+      g[:3] += np.sum(_cross(qw, diff), 0)
+      g[3:] += wp @ diff
       step = -np.linalg.solve(h, g)
       d_rot = ego.rotation_from_vector(step[:3])
       rotation, translation = d_rot @ rotation, d_rot @ translation + step[3:]
@@ -178,30 +194,42 @@ class _Target:
     return rotation, translation
 
 
+def _sample_fits(src_Nx3, dst_Nx3, picks_Tx3):
+  """The Kabsch motions (R T x 3 x 3, t T x 3) of T samples of three correspondences each."""
+  a, b = src_Nx3[picks_Tx3], dst_Nx3[picks_Tx3]
+  mu_a, mu_b = a.mean(1), b.mean(1)
+  cov = np.einsum("tki,tkj->tij", a - mu_a[:, None], b - mu_b[:, None])
+  rot = rigid.kabsch_rotation(cov)
+  return rot, mu_b - np.einsum("tij,tj->ti", rot, mu_a)
+
+
 def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None) -> list:
   """Sequential local RANSAC on p -> p + flow: [(rotation, translation, inlier indices)].
-  `nbr_NxK`: each point's `settings.local` nearest (searched when not given)."""
+  `nbr_NxK`: each point's `settings.local` nearest (searched when not given). A hypothesis's
+  `trials` samples are drawn and scored at once."""
   target = pc1_Nx3 + flow_Nx3
   if nbr_NxK is None:
-    _, nbr_NxK = cKDTree(pc1_Nx3).query(pc1_Nx3, min(settings.local, len(pc1_Nx3)))
+    _, nbr_NxK = cKDTree(pc1_Nx3).query(pc1_Nx3, min(settings.local, len(pc1_Nx3)), workers=-1)
   remaining, found = np.arange(len(pc1_Nx3)), []
   while len(remaining) >= settings.min_support and len(found) < settings.max_bodies:
     left = np.zeros(len(pc1_Nx3), bool)
     left[remaining] = True
-    best, best_count = None, 0
-    for _ in range(settings.trials):
-      seed = rng.choice(remaining)
-      near = nbr_NxK[seed][left[nbr_NxK[seed]]]
-      if len(near) < 3:
-        continue
-      pick = rng.choice(near, 3, replace=False)
-      m = rigid.kabsch(pc1_Nx3[pick], target[pick])
-      count = int((np.linalg.norm(m.apply(pc1_Nx3[remaining]) - target[remaining], axis=1)
-                   < settings.inlier).sum())
-      if count > best_count:
-        best, best_count = m, count
-    if best is None or best_count < settings.min_support:
+    near_TxK = nbr_NxK[rng.choice(remaining, settings.trials)]
+    usable_TxK = left[near_TxK]
+    # Three distinct neighbours still left, uniformly: the three smallest random keys.
+    keys = np.where(usable_TxK, rng.random(near_TxK.shape), np.inf)
+    order = np.argsort(keys, axis=1)[:, :3]
+    ok = usable_TxK.sum(1) >= 3
+    if not ok.any():
       break
+    picks = np.take_along_axis(near_TxK, order, 1)[ok]
+    rot, trans = _sample_fits(pc1_Nx3, target, picks)
+    moved = np.einsum("tij,nj->tni", rot, pc1_Nx3[remaining]) + trans[:, None]
+    counts = (np.sum((moved - target[remaining]) ** 2, -1) < settings.inlier**2).sum(1)
+    best = int(np.argmax(counts))  # the first of the most supported
+    if counts[best] < settings.min_support:
+      break
+    best = rigid.Motion(rot[best], trans[best])
     for _ in range(3):  # refit to the inliers
       inliers = remaining[np.linalg.norm(best.apply(pc1_Nx3[remaining]) - target[remaining],
                                          axis=1) < settings.inlier]
@@ -233,7 +261,7 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
                                           "returned unchanged")
   rng = np.random.default_rng(settings.seed)
   sample = _subset(np.arange(len(pc1)), settings.sample, rng)
-  _, nbr_NxK = cKDTree(pc1).query(pc1, min(settings.neighbours, len(pc1)))
+  _, nbr_NxK = cKDTree(pc1).query(pc1, min(settings.neighbours, len(pc1)), workers=-1)
   whole = len(sample) == len(pc1) and settings.local == settings.neighbours  # one search serves
   found = hypotheses(pc1[sample], flow[sample], settings, rng, nbr_NxK if whole else None)
   if not found:
@@ -255,20 +283,29 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   label_N = np.where(label_N >= 0, label_N, len(found))  # unsupported: any motion
   smooth = lambda per_point_N: per_point_N[nbr_NxK].mean(1)
   start_cost = smooth(target.cost(pc1 + flow, settings.truncate))
+  every = np.arange(len(pc1))
   for round_ in range(settings.em_rounds + 1):
-    cost_NxH = np.empty((len(pc1), len(motions)))
-    choice_NxH = np.empty_like(cost_NxH)
-    for h, (r, t) in enumerate(motions):
-      moved = pc1 @ r.T + t
-      cost_NxH[:, h] = smooth(target.cost(moved, settings.truncate))
-      departure = np.minimum(np.linalg.norm(moved - pc1 - flow, axis=1), 1.0)
-      choice_NxH[:, h] = (cost_NxH[:, h] + settings.pull * smooth(departure)
-                          + settings.stick * (departure > settings.inlier)
-                          + settings.world * (h % len(found) != 0))
     held = np.zeros((len(pc1), len(found) + 1), bool)
-    held[np.arange(len(pc1))[:, None], label_N[nbr_NxK]] = True
+    held[every[:, None], label_N[nbr_NxK]] = True
     allowed = held[:, np.arange(len(motions)) % len(found)] | held[:, -1:]
-    best_N = np.argmin(np.where(allowed, choice_NxH, np.inf), 1)
+    cost_NxH = np.full((len(pc1), len(motions)), np.inf)
+    choice_NxH = np.full_like(cost_NxH, np.inf)
+    cost_N, departure_N = np.empty(len(pc1)), np.empty(len(pc1))
+    for h, (r, t) in enumerate(motions):
+      # Costs only where the motion may be taken (the world's: everywhere, bodies join it), each
+      # the mean over the point's neighbours: those are the points whose cost is needed.
+      rows = every if h % len(found) == 0 else np.flatnonzero(allowed[:, h])
+      if not len(rows):
+        continue
+      need = every if len(rows) == len(pc1) else np.unique(nbr_NxK[rows])
+      moved = pc1[need] @ r.T + t
+      cost_N[need] = target.cost(moved, settings.truncate)
+      departure_N[need] = np.minimum(np.linalg.norm(moved - pc1[need] - flow[need], axis=1), 1.0)
+      cost_NxH[rows, h] = cost_N[nbr_NxK[rows]].mean(1)
+      choice_NxH[rows, h] = (cost_NxH[rows, h] + settings.pull * departure_N[nbr_NxK[rows]].mean(1)
+                             + settings.stick * (departure_N[rows] > settings.inlier)
+                             + settings.world * (h % len(found) != 0))
+    best_N = np.argmin(choice_NxH, 1)
     best_N = _join_world(best_N, motions, len(found), pc1, normals1, target, view, settings)
     label_N = best_N % len(found)
     if round_ == settings.em_rounds:

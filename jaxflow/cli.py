@@ -26,7 +26,7 @@ from typing import Any, Callable
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from jaxflow import configfile, determinism
+from jaxflow import compile_cache, configfile, determinism
 from jaxflow.errors import ConfigError, JaxflowError
 
 EXIT_USER_ERROR = 2
@@ -146,7 +146,7 @@ def define_run_flags(default_method: str):
                     "(default: two-way Chamfer, k-d tree every step) or grid (one-way distance "
                     "grids: faster, less accurate).")
   flags.DEFINE_integer("iters", None, "Flow iterations of the network (default: "
-                       "config.eval.num_iters, 32).")
+                       "config.eval.num_iters, 32; for optimise's starting flow 8).")
   flags.DEFINE_integer("max_points", None, "Clouds above this size are sampled to it (default: "
                        "config.eval.num_points, 8192; 0: whole clouds).")
   flags.DEFINE_bool("full", False, "Whole clouds (--max_points 0), the correlation and kNN built "
@@ -212,6 +212,9 @@ def _parse_flags(argv: list[str], config_names=()) -> list[str]:
       fail(str(e))
   if not flags.FLAGS["verbosity"].present:  # orbax and jax log every step of a save at INFO
     logging.set_verbosity(logging.WARNING)
+  note = compile_cache.enable(flags.FLAGS.compilation_cache)  # (before anything compiles)
+  if note:
+    print(f"note: {note}", file=sys.stderr)
   if flags.FLAGS.print_config:
     text = []
     for name in config_names:
@@ -247,6 +250,10 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
   flags.DEFINE_bool("deterministic", False, "Run-to-run identical results on a GPU too (XLA's "
                     "deterministic GPU ops; slower). The CPU is deterministic already "
                     "(docs/methods.md, Determinism).")
+  flags.DEFINE_string("compilation_cache", None, "Folder of JAX's persistent compilation cache: a "
+                      "second run reads back what the first compiled (default: "
+                      f"${compile_cache.ENV}, else ~/.cache/jaxflow/xla; 'off': none; "
+                      "jaxflow.compile_cache).")
   for name in sorted(set(flags.FLAGS) - before):  # --help shows sys.argv[0]'s key flags
     if "." not in name:  # the config's fields: --print_config lists them
       flags.FLAGS.register_key_flag_for_module(sys.argv[0], flags.FLAGS[name])

@@ -55,7 +55,7 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   distributed.initialize_from_flags()
   config, model_fields = cli.run_settings(FLAGS.config)
-  chosen = inference.method_settings(FLAGS.method, FLAGS.steps, FLAGS.objective)
+  chosen = inference.method_settings(FLAGS.method, FLAGS.steps, FLAGS.objective, FLAGS.iters)
   on_batch = []
   if FLAGS.save_flows:
     on_batch.append(export.FlowSaver(FLAGS.save_flows).add)

@@ -53,9 +53,10 @@ class Prediction:
   up: str = frames.MODEL_UP  # the up axis of the clouds (jaxflow.frames): the flow is in their frame
 
 
-def method_settings(method: str, steps: int | None = None, objective: str | None = None):
-  """methods.settings(method, steps), with NSFP's objective (exact or grid) when given."""
-  chosen = methods.settings(method, steps)
+def method_settings(method: str, steps: int | None = None, objective: str | None = None,
+                    iters: int | None = None):
+  """methods.settings(method, steps, iters), with NSFP's objective (exact or grid) when given."""
+  chosen = methods.settings(method, steps, iters if method == "optimise" else None)
   if objective is None:
     return chosen
   if method != "nsfp":
@@ -153,8 +154,12 @@ class Predictor:
     sub1 = pc1_Nx3 if idx1 is None else pc1_Nx3[idx1]
     sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
     every_point = self.method == "optimise"  # the network sees samples, the optimiser every point
-    fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0),
-                  "network" if every_point else self.method)
+    if every_point:  # the network's flow of the samples starts optimise: the method's settings
+      start, num_iters = methods.start_network(self.model, num_iters, self.method_settings)
+      fn = evaluation.model_predict_fn(start, num_iters, self.refine, with_info=True)
+      fn = self._fns.setdefault(("start", start.truncate_k, num_iters), fn)
+    else:
+      fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0), self.method)
     flow_Sx3, info = fn(self.params, sub1[None], sub2[None])
     flow_Sx3 = np.asarray(flow_Sx3[0])
     flow_Nx3 = flow_Sx3 if idx1 is None else spread_flow(pc1_Nx3, sub1, flow_Sx3)
@@ -232,8 +237,7 @@ class DeferredPredictor:
 def _from_start(chosen):
   """jit (start flow, pc1, pc2) -> (flow, info) of `optimise` from a given starting flow (the
   network's flow of the samples spread to every point)."""
-  return jax.jit(methods.flow_fn("optimise", lambda start, pc1, pc2: start, chosen,
-                                 with_info=True))
+  return methods.flow_fn("optimise", lambda start, pc1, pc2: start, chosen, with_info=True)
 
 
 def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndarray:
@@ -266,11 +270,12 @@ def as_cloud(points, name, min_points: int) -> np.ndarray:
 
 def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = None,
                    model_fields=(), method: str = "network", steps: int | None = None,
-                   objective: str | None = None) -> Predictor:
+                   objective: str | None = None, iters: int | None = None) -> Predictor:
   """The Predictor of `method` (jaxflow.methods; `steps` caps its optimiser, `objective` is
-  NSFP's) with the model of a checkpoint (workdir, checkpoints folder or step folder; None: the
-  shipped one; nsfp loads none). `model_fields`: checkpointing.load_for_inference."""
-  chosen = method_settings(method, steps, objective)
+  NSFP's, `iters` sets optimise's starting flow's iterations) with the model of a checkpoint
+  (workdir, checkpoints folder or step folder; None: the shipped one; nsfp loads none).
+  `model_fields`: checkpointing.load_for_inference."""
+  chosen = method_settings(method, steps, objective, iters)
   if method not in methods.NEEDS_NETWORK:
     return Predictor(None, None, ml_collections.ConfigDict({"model": {"knn": 1}}), False,
                      name="NSFP, no network", method=method, method_settings=chosen)

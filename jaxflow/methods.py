@@ -9,16 +9,18 @@
   not raw LiDAR sweeps (those take `predict --lidar`, jaxflow.sweep), and predict's default.
 
     fn = flow_fn("optimise", network)   # network: (params, pc1, pc2) -> flow, B x N x 3
-    flow_BxNx3 = jax.jit(fn)(params, pc1_BxNx3, pc2_BxMx3)
+    flow_BxNx3 = fn(params, pc1_BxNx3, pc2_BxMx3)
 """
 
 import dataclasses
+import functools
+import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflow import bodies, optimiser, rigid_clusters
+from jaxflow import bodies, objectives, optimiser, rigid_clusters
 from jaxflow.errors import ConfigError
 
 METHODS = ("network", "nsfp", "optimise")
@@ -31,13 +33,20 @@ NSFP = optimiser.NSFP
 
 @dataclasses.dataclass(frozen=True)
 class Optimise:
-  """The `optimise` method: `refine` (the network's flow optimised as free vectors); then, for
+  """The `optimise` method: from the network's flow after `start_iters` iterations, `refine` (the
+  flow optimised as free vectors); then, for
   `rigid_steps` > 0, clusters of points that move together (jaxflow.rigid_clusters) each get the
   rigid motion of their flow, optimised against pc2 for `rigid_steps` steps (6 numbers a cluster);
   then `polish`: free-vector steps from that flow on the exact two-way Chamfer (nearest points by
   k-d tree), which the one-way grid cannot give (steps 0: none); then `bodies` (None: none): the
   scene's rigid bodies found in that flow and fitted to pc2 (jaxflow.bodies, on the host: one
   device-host round trip a batch)."""
+  # The network's iterations for the starting flow (None: the caller's, e.g. --iters) and its
+  # correlation candidates (None: the model's, config.model.infer_truncate_k): 8 and 64 instead of
+  # 32 and 512 take the network's start from ~10 to ~3 s a pair at 8192 points, and the method's
+  # EPE on the 21 real FT3D pairs is no worse (benchmarks/SPEED.md).
+  start_iters: int | None = 8
+  start_candidates: int | None = 64
   refine: optimiser.Settings = optimiser.Settings(
     model="flow", objective="grid", steps=400, learning_rate=0.05, smoothness=1.0)
   clusters: rigid_clusters.Settings = rigid_clusters.Settings()
@@ -50,9 +59,10 @@ class Optimise:
   bodies: "bodies.Settings | None" = bodies.Settings()  # (a string: the field hides the module)
 
 
-def settings(method: str, steps: int | None = None):
+def settings(method: str, steps: int | None = None, iters: int | None = None):
   """The default settings of a method (None for `network`); `steps` caps the optimiser's steps
-  (optimise's rigid-bodies stage counts none: it runs whatever `steps`)."""
+  (optimise's rigid-bodies stage counts none: it runs whatever `steps`); `iters`: the network's
+  iterations for optimise's starting flow."""
   if method not in METHODS:
     raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
   if method == "network":
@@ -62,6 +72,10 @@ def settings(method: str, steps: int | None = None):
   if method == "nsfp":
     return NSFP if steps is None else dataclasses.replace(NSFP, steps=steps)
   chosen = Optimise()
+  if iters is not None:
+    if iters < 1:
+      raise ConfigError(f"--iters must be >= 1, got {iters}")
+    chosen = dataclasses.replace(chosen, start_iters=iters)
   if steps is not None:
     chosen = dataclasses.replace(chosen, refine=dataclasses.replace(chosen.refine, steps=steps),
                                  rigid_steps=min(chosen.rigid_steps, steps),
@@ -70,58 +84,111 @@ def settings(method: str, steps: int | None = None):
   return chosen
 
 
-def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise):
+class _Clock:
+  """Seconds of each stage into `seconds` (None: no clock, nothing waited for)."""
+
+  def __init__(self, seconds: dict | None):
+    self.seconds, self.last = seconds, time.perf_counter()
+
+  def __call__(self, stage: str, *arrays):
+    if self.seconds is not None:
+      jax.block_until_ready(arrays)
+      now = time.perf_counter()
+      self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self.last
+      self.last = now
+
+
+def start_network(model, num_iters: int, chosen: Optimise):
+  """(model, iterations) of optimise's starting flow: `model` with at most
+  `chosen.start_candidates` correlation candidates, and `chosen.start_iters` (else `num_iters`)
+  iterations."""
+  if chosen.start_candidates and model is not None:
+    model = model.clone(truncate_k=min(chosen.start_candidates, model.truncate_k))
+  return model, chosen.start_iters or num_iters
+
+
+def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=None):
   """The `optimise` method's flow from a starting flow (the network's), and the info of its first
-  optimisation (jaxflow.optimiser.optimise)."""
-  grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.refine)  # once for every stage
-  flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.refine, grids=grids)
+  optimisation (jaxflow.optimiser.optimise). Driven from Python: the searches (pc1's kNN graph, the
+  distance grid, the polish's nearest points) run between compiled stages, so that no compiled
+  program calls back to the host (JAX's persistent compilation cache keeps only such programs).
+  `seconds`: a dict that gets each stage's seconds (each stage then waited for: a profile)."""
+  clock = _Clock(seconds)
+  clock("start", init_BxNx3, pc1_BxNx3, pc2_BxMx3)
+  search = chosen.refine.search
+  grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.refine, now=True)
+  k = max(chosen.refine.neighbours, chosen.polish.neighbours, chosen.clusters.neighbours)
+  graph = objectives.knn_now(pc1_BxNx3, pc1_BxNx3, k + 1, search)  # each point first
+  nbr = lambda settings: graph[:, :, 1:settings.neighbours + 1]
+  clock("grid and kNN graph", grids, graph)
+  flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.refine, grids=grids,
+                                  nbr_BxNxK=nbr(chosen.refine))
+  clock("refine", flow)
   if chosen.rigid_steps:
-    labels = rigid_clusters.clusters(pc1_BxNx3, flow, chosen.clusters)
-    motions = rigid_clusters.fit(pc1_BxNx3, flow, labels, chosen.clusters.min_points,
-                                 chosen.refine.precision)
-    stage = dataclasses.replace(chosen.refine, model="rigid", steps=chosen.rigid_steps,
-                                learning_rate=chosen.rigid_learning_rate, smoothness=0.0)
-    fitted = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions), grids)[0]
+    labels, fitted = _rigid_stage(pc1_BxNx3, pc2_BxMx3, flow, grids,
+                                  graph[:, :, :chosen.clusters.neighbours + 1], chosen)
+    clock("rigid clusters", fitted)
     if chosen.choose:
-      fitted = rigid_clusters.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3,
-                                     chosen.refine.truncate, chosen.refine.search)
+      matches = [objectives.nearest_now(pc1_BxNx3 + f, pc2_BxMx3, search) for f in (flow, fitted)]
+      fitted = _choose(labels, flow, fitted, pc1_BxNx3, pc2_BxMx3, matches, chosen.refine.truncate)
+      clock("rigid clusters", fitted)
     flow = fitted
   if chosen.polish.steps:
-    flow = optimiser.optimise(flow, pc1_BxNx3, pc2_BxMx3, chosen.polish)[0]
+    flow = optimiser.optimise_host_loop(flow, pc1_BxNx3, pc2_BxMx3, chosen.polish,
+                                        nbr_BxNxK=nbr(chosen.polish))[0]
+    clock("polish", flow)
   if chosen.bodies is not None:
     flow = rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow, chosen.bodies)
+    clock("rigid bodies", flow)
   return flow, info
 
 
+@functools.partial(jax.jit, static_argnames="chosen")
+def _rigid_stage(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, grids, graph_BxNxK, chosen: Optimise):
+  """The clusters of the flow and their rigid motions optimised against pc2 (labels, flow)."""
+  labels = rigid_clusters.clusters(pc1_BxNx3, flow_BxNx3, chosen.clusters, graph_BxNxK)
+  motions = rigid_clusters.fit(pc1_BxNx3, flow_BxNx3, labels, chosen.clusters.min_points,
+                               chosen.refine.precision)
+  stage = dataclasses.replace(chosen.refine, model="rigid", steps=chosen.rigid_steps,
+                              learning_rate=chosen.rigid_learning_rate, smoothness=0.0)
+  return labels, optimiser.optimise(flow_BxNx3, pc1_BxNx3, pc2_BxMx3, stage, (labels, *motions),
+                                    grids)[0]
+
+
+@functools.partial(jax.jit, static_argnames="truncate")
+def _choose(labels, flow, fitted, pc1_BxNx3, pc2_BxMx3, matches, truncate: float):
+  return rigid_clusters.choose(labels, (flow, fitted), pc1_BxNx3, pc2_BxMx3, truncate,
+                               matches=matches)
+
+
 def rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, chosen: bodies.Settings):
-  """jaxflow.bodies.rigid_bodies of each pair of a batch, from inside jit (a host callback)."""
-
-  def host(pc1, pc2, flow):
-    return np.stack([bodies.rigid_bodies(a, b, f, chosen)[0]
-                     for a, b, f in zip(pc1, pc2, flow)]).astype(flow.dtype)
-
-  shape = jax.ShapeDtypeStruct(flow_BxNx3.shape, flow_BxNx3.dtype)
-  return jax.pure_callback(host, shape, *map(jax.lax.stop_gradient,
-                                             (pc1_BxNx3, pc2_BxMx3, flow_BxNx3)),
-                           vmap_method="sequential")
+  """jaxflow.bodies.rigid_bodies of each pair of a batch (NumPy on the host), as a jax array."""
+  return jnp.asarray(np.stack([bodies.rigid_bodies(a, b, f, chosen)[0] for a, b, f in
+                               zip(*map(np.asarray, (pc1_BxNx3, pc2_BxMx3, flow_BxNx3)))]))
 
 
 def flow_fn(method: str, network=None, chosen=None, with_info: bool = False):
   """(params, pc1 B x N x 3, pc2 B x M x 3) -> flow B x N x 3 of `method` (with `with_info`:
   (flow, info), info None for `network`). `network(params, pc1, pc2)` gives the network's flow;
-  `chosen`: the method's settings (default `settings(method)`)."""
+  `chosen`: the method's settings (default `settings(method)`). For `network` a jitted function
+  (`.lower` compiles it ahead); nsfp and optimise are driven from Python between compiled stages
+  (optimiser.optimise_host_loop, optimise_flow): call them, do not jit them."""
   chosen = settings(method) if chosen is None else chosen
   if method in NEEDS_NETWORK and network is None:
     raise ConfigError(f"method {method!r} needs a network")
-
-  def run(params, pc1_BxNx3, pc2_BxMx3):
-    if method == "network":
-      return network(params, pc1_BxNx3, pc2_BxMx3), None
-    if method == "nsfp":
-      return optimiser.optimise(jnp.zeros_like(pc1_BxNx3), pc1_BxNx3, pc2_BxMx3, chosen)
-    return optimise_flow(network(params, pc1_BxNx3, pc2_BxMx3), pc1_BxNx3, pc2_BxMx3, chosen)
-
-  return run if with_info else (lambda *args: run(*args)[0])
+  if method == "network":
+    run = jax.jit(lambda params, pc1, pc2: (network(params, pc1, pc2), None))
+  elif method == "nsfp":
+    run = lambda params, pc1, pc2: optimiser.optimise_host_loop(jnp.zeros_like(pc1), pc1, pc2,
+                                                                chosen)
+  else:
+    start = jax.jit(network)
+    run = lambda params, pc1, pc2: optimise_flow(start(params, pc1, pc2), pc1, pc2, chosen)
+  if with_info:
+    return run
+  if method == "network":
+    return jax.jit(lambda *args: run(*args)[0])
+  return lambda *args: run(*args)[0]
 
 
 def describe(method: str, chosen) -> dict:

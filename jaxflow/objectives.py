@@ -1,6 +1,6 @@
 """The self-supervised objectives of flow optimisation (jaxflow.optimiser: NSFP, test time).
 
-One nearest-point search, one Chamfer term, one smoothness term, one distance transform:
+One nearest-point search, one Chamfer term, one smoothness term:
 - `knn` / `nearest`: exact nearest points (Euclidean, a constant of the gradient), searched where
   the program runs (`search`, SEARCHES): "host", scipy's k-d tree through a callback (O(N log M);
   the tree of a cloud already searched is reused, `tree_cache_info`); "device", a brute-force
@@ -11,25 +11,18 @@ One nearest-point search, one Chamfer term, one smoothness term, one distance tr
   device for a search. Costs: benchmarks/SEARCH.md.
 - `chamfer_terms`: the truncated two-way Chamfer with the matches held fixed.
 - `smoothness`: mean L1 difference of the flow over pc1's k-nearest graph.
-- `distance_grid` / `grid_distance`: the distance to pc2 sampled once per pair on a voxel grid and
-  read by trilinear interpolation at any point (the FNSF idea: a step costs O(N), not O(N x M)).
-  The grid covers pc2's box plus `margin` metres (beyond it every point is farther than `margin`
-  from pc2, so a term truncated at <= margin is constant there) and holds at most `max_cells` nodes:
-  cells grow for large extents, so memory stays bounded for whole sweeps. It is built once per
-  pair where `search` says: scipy's distance transform on the host, or the exact distances by
-  brute force on the device.
+- the distance grid of the fast objective: jaxflow.distance_grid.
 """
 
 import collections
 import functools
 import hashlib
 import threading
-import typing
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import ndimage, spatial
+from scipy import spatial
 
 from jaxflow import geometry
 
@@ -97,17 +90,53 @@ def host_knn(query_BxNx3, points_BxMx3, k: int):
   k = min(k, points_BxMx3.shape[1])
   shape = jax.ShapeDtypeStruct((b, n, k), jnp.int32)
 
-  def search(query, points):
-    out = np.zeros(shape.shape, np.int32)
-    for i, (q, p) in enumerate(zip(np.asarray(query, np.float64), np.asarray(points))):
-      out[i] = _TREES.tree(p).query(q, k=[*range(1, k + 1)], workers=-1)[1]
-    return out
-
-  return jax.pure_callback(search, shape, jax.lax.stop_gradient(query_BxNx3),
-                           jax.lax.stop_gradient(points_BxMx3), vmap_method="sequential")
+  return jax.pure_callback(functools.partial(host_search, k=k), shape,
+                           jax.lax.stop_gradient(query_BxNx3), jax.lax.stop_gradient(points_BxMx3),
+                           vmap_method="sequential")
 
 
-def _squared_differences(a_BxCx3, b_BxMx3):
+def host_search(query_BxNx3, points_BxMx3, k: int) -> np.ndarray:
+  """`host_knn`'s indices B x N x k (k <= M) in NumPy, outside jit: each batch's k-d tree (cached)."""
+  query, points = np.asarray(query_BxNx3, np.float64), np.asarray(points_BxMx3)
+  out = np.zeros(query.shape[:2] + (k,), np.int32)
+  for i, (q, p) in enumerate(zip(query, points)):
+    out[i] = _TREES.tree(p).query(q, k=[*range(1, k + 1)], workers=-1)[1]
+  return out
+
+
+def resolved(search: str) -> str:
+  """`search` with "auto" resolved for the default backend: "host" on the CPU, else "device"."""
+  check_search(search)
+  if search != "auto":
+    return search
+  return "host" if jax.default_backend() == "cpu" else "device"
+
+
+_device_knn = jax.jit(lambda q, p, k: device_knn(q, p, k), static_argnums=2)
+
+
+def knn_now(query_BxNx3, points_BxMx3, k: int, search: str = "auto"):
+  """`knn`'s indices computed at once, outside jit (no host callback in any compiled program):
+  the host's k-d tree (host_search) or the device's search, by `resolved(search)`."""
+  k = min(k, points_BxMx3.shape[1])
+  if resolved(search) == "host":
+    return jnp.asarray(host_search(query_BxNx3, points_BxMx3, k))
+  return _device_knn(query_BxNx3, points_BxMx3, k)
+
+
+def nearest_now(query_BxNx3, points_BxMx3, search: str = "auto"):
+  return knn_now(query_BxNx3, points_BxMx3, 1, search)
+
+
+def neighbours_now(pc1_BxNx3, k: int, search: str = "auto"):
+  """`neighbours` computed at once, outside jit (knn_now)."""
+  n = pc1_BxNx3.shape[1]
+  if n == 1:
+    return jnp.zeros((pc1_BxNx3.shape[0], 1, 1), jnp.int32)
+  return knn_now(pc1_BxNx3, pc1_BxNx3, min(k, n - 1) + 1, search)[:, :, 1:]
+
+
+def squared_differences(a_BxCx3, b_BxMx3):
   """|a - b|^2, B x C x M, summed coordinate by coordinate (no C x M x 3 temporary)."""
   return sum((a_BxCx3[:, :, None, i] - b_BxMx3[:, None, :, i]) ** 2 for i in range(3))
 
@@ -121,7 +150,7 @@ def device_knn(query_BxNx3, points_BxMx3, k: int, block: int = DEVICE_BLOCK_ELEM
   m = points_BxMx3.shape[1]
 
   def select(q_BxCx3):
-    d_BxCxM = _squared_differences(q_BxCx3, points_BxMx3)
+    d_BxCxM = squared_differences(q_BxCx3, points_BxMx3)
     if k == 1:
       return jnp.argmin(d_BxCxM, axis=-1).astype(jnp.int32)[..., None]
     return jax.lax.top_k(-d_BxCxM, k)[1].astype(jnp.int32)
@@ -184,139 +213,3 @@ def smoothness(flow_BxNx3, nbr_BxNxK):
   """Mean L1 difference between each point's flow and its neighbours' (B)."""
   diff = geometry.gather(flow_BxNx3, nbr_BxNxK) - flow_BxNx3[:, :, None]
   return jnp.mean(jnp.sum(jnp.abs(diff), axis=-1), axis=(1, 2))
-
-
-# The distance transform.
-
-
-class Grid(typing.NamedTuple):
-  """Distances to a cloud at the nodes of a regular grid: node (i, j, k) sits at
-  origin + cell * (i, j, k); `values` is the flat C-order grid padded to a fixed length."""
-  origin_Bx3: jax.Array
-  cell_B: jax.Array
-  dims_Bx3: jax.Array  # int32 nodes per axis
-  values_BxG: jax.Array
-
-
-def grid_layout(points_Mx3: np.ndarray, cell: float, max_cells: int, margin: float):
-  """(origin 3, cell, dims 3): pc's box plus `margin`, cells of `cell` m or larger so that the
-  node count stays <= max_cells."""
-  lo = points_Mx3.min(axis=0).astype(np.float64) - margin
-  extent = points_Mx3.max(axis=0).astype(np.float64) + margin - lo
-  cell = max(float(cell), float(np.prod(extent) / max_cells) ** (1 / 3), 1e-6)
-  dims = np.floor(extent / cell).astype(np.int64) + 2
-  while np.prod(dims) > max_cells:  # the cube-root estimate ignores the +2 nodes per axis
-    cell *= 1.02
-    dims = np.floor(extent / cell).astype(np.int64) + 2
-  return lo, cell, dims
-
-
-def distance_grid_np(points_Mx3: np.ndarray, cell: float, max_cells: int, margin: float):
-  """(origin, cell, dims, values): at each node the distance to the pc2 point held by its nearest
-  occupied node (each point occupies its nearest node; the exact Euclidean distance transform of the
-  occupancy finds that node). It equals the distance to the nearest point up to about one cell."""
-  origin, cell, dims = grid_layout(points_Mx3, cell, max_cells, margin)
-  node_Mx3 = np.clip(np.rint((points_Mx3 - origin) / cell).astype(np.int64), 0, dims - 1)
-  flat_M = np.ravel_multi_index(node_Mx3.T, dims)
-  holder = np.full(int(np.prod(dims)), -1, np.int64)
-  holder[flat_M[::-1]] = np.arange(len(points_Mx3))[::-1]  # the first point of a node holds it
-  empty = (holder < 0).reshape(tuple(dims))
-  nearest_3xG = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
-  nearest_G = np.ravel_multi_index(nearest_3xG.reshape(3, -1), dims)
-  nodes_Gx3 = np.stack(np.unravel_index(np.arange(int(np.prod(dims))), dims), -1) * cell + origin
-  values = np.linalg.norm(nodes_Gx3 - points_Mx3[holder[nearest_G]], axis=-1)
-  return origin, cell, dims, values.astype(np.float32)
-
-
-def distance_grid(pc2_BxMx3, cell: float, max_cells: int, margin: float,
-                  search: str = "auto") -> Grid:
-  """The distance grid of each cloud of the batch, built where `search` says (SEARCHES): on the
-  host (`host_distance_grid`) or on the device (`device_distance_grid`)."""
-  check_search(search)
-  host = functools.partial(host_distance_grid, cell=cell, max_cells=max_cells, margin=margin)
-  device = functools.partial(device_distance_grid, cell=cell, max_cells=max_cells, margin=margin)
-  if search == "host":
-    return host(pc2_BxMx3)
-  if search == "device":
-    return device(pc2_BxMx3)
-  return jax.lax.platform_dependent(pc2_BxMx3, cpu=host, default=device)
-
-
-def device_distance_grid(pc2_BxMx3, cell: float, max_cells: int, margin: float,
-                         block: int = 8 * DEVICE_BLOCK_ELEMENTS) -> Grid:
-  """`grid_layout`'s grid with the EXACT distance to the nearest point at each node, by brute force
-  on the device (all max_cells nodes against all points, `block` // M nodes at a time: O(max_cells
-  x M), tens of ms on a GPU at 2^22 nodes and 8192 points; the host's distance transform is
-  within a cell of it)."""
-  pc2_BxMx3 = jax.lax.stop_gradient(pc2_BxMx3).astype(jnp.float32)
-  m = pc2_BxMx3.shape[1]
-
-  def layout(points_Mx3):  # grid_layout in float32 (the host's is float64: a hair apart)
-    lo_3 = jnp.min(points_Mx3, axis=0) - margin
-    extent_3 = jnp.max(points_Mx3, axis=0) + margin - lo_3
-    size = jnp.maximum(jnp.maximum(cell, (jnp.prod(extent_3) / max_cells) ** (1 / 3)), 1e-6)
-    dims_of = lambda size: jnp.floor(extent_3 / size) + 2  # float: no int32 overflow
-    size = jax.lax.while_loop(lambda c: jnp.prod(dims_of(c)) > max_cells, lambda c: c * 1.02, size)
-    return lo_3, size, dims_of(size).astype(jnp.int32)
-
-  origin_Bx3, cell_B, dims_Bx3 = jax.vmap(layout)(pc2_BxMx3)
-  g_G = jnp.arange(max_cells, dtype=jnp.int32)
-
-  def nodes(origin_3, size, dims_3):  # node (i, j, k) of each flat C-order index
-    ijk_Gx3 = jnp.stack([g_G // (dims_3[1] * dims_3[2]), (g_G // dims_3[2]) % dims_3[1],
-                         g_G % dims_3[2]], -1)
-    return origin_3 + size * ijk_Gx3.astype(jnp.float32)
-
-  nodes_BxGx3 = jax.vmap(nodes)(origin_Bx3, cell_B, dims_Bx3)
-
-  def nearest_sq(n_BxCx3):
-    return jnp.min(_squared_differences(n_BxCx3, pc2_BxMx3), axis=-1)
-
-  sq_BxG = geometry.map_row_chunks(nearest_sq, (nodes_BxGx3,), max(1, block // max(m, 1)))
-  inside_BxG = g_G[None] < jnp.prod(dims_Bx3, axis=1)[:, None]
-  return Grid(origin_Bx3, cell_B, dims_Bx3, jnp.where(inside_BxG, jnp.sqrt(sq_BxG), 0.0))
-
-
-def host_distance_grid(pc2_BxMx3, cell: float, max_cells: int, margin: float) -> Grid:
-  """The distance grid of each cloud of the batch, built on the host (scipy) inside jit."""
-  b = pc2_BxMx3.shape[0]
-  shapes = (jax.ShapeDtypeStruct((b, 3), jnp.float32), jax.ShapeDtypeStruct((b,), jnp.float32),
-            jax.ShapeDtypeStruct((b, 3), jnp.int32),
-            jax.ShapeDtypeStruct((b, max_cells), jnp.float32))
-
-  def build(pc2):
-    out = [np.zeros(s.shape, s.dtype) for s in shapes]
-    for i, points in enumerate(np.asarray(pc2, np.float64)):
-      origin, c, dims, values = distance_grid_np(points, cell, max_cells, margin)
-      out[0][i], out[1][i], out[2][i] = origin, c, dims
-      out[3][i, :len(values)] = values
-    return tuple(out)
-
-  return Grid(*jax.pure_callback(build, shapes, jax.lax.stop_gradient(pc2_BxMx3),
-                                 vmap_method="sequential"))
-
-
-def grid_distance(grid: Grid, points_BxNx3):
-  """Trilinear read of the grid at the points (B x N); points outside are clamped to the box."""
-
-  def one(origin, cell, dims, values, pts_Nx3):
-    top = (dims - 1).astype(jnp.float32)
-    u_Nx3 = jnp.clip((pts_Nx3 - origin) / cell, 0.0, top)
-    i0_Nx3 = jnp.minimum(jnp.floor(u_Nx3), jnp.maximum(top - 1, 0)).astype(jnp.int32)
-    t_Nx3 = u_Nx3 - i0_Nx3
-    total = 0.0
-    for corner in range(8):
-      bit_3 = jnp.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1], jnp.int32)
-      idx_Nx3 = jnp.minimum(i0_Nx3 + bit_3, dims - 1)
-      flat_N = (idx_Nx3[:, 0] * dims[1] + idx_Nx3[:, 1]) * dims[2] + idx_Nx3[:, 2]
-      weight_N = jnp.prod(jnp.where(bit_3 == 1, t_Nx3, 1.0 - t_Nx3), axis=-1)
-      total = total + weight_N * values[flat_N]
-    return total
-
-  return jax.vmap(one)(*grid, points_BxNx3)
-
-
-def grid_chamfer(grid: Grid, warped_BxNx3, truncate: float):
-  """The warped -> pc2 Chamfer term through the grid: mean of min(d, truncate)^2 (B)."""
-  return jnp.mean(jnp.minimum(grid_distance(grid, warped_BxNx3), truncate) ** 2, axis=1)
-

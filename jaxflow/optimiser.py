@@ -24,9 +24,10 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
-from jaxflow import objectives, rigid_clusters
+from jaxflow import distance_grid, objectives, rigid_clusters
 from jaxflow.layers import PRECISIONS
 
 MODELS = ("flow", "mlp", "rigid")
@@ -132,13 +133,13 @@ def _loss(params, pair, nbr_NxK, grids, match, settings: Settings):
   flow = _flow(params, init_Nx3, pc1_Nx3, clusters, settings.precision)
   warped = (pc1_Nx3 + flow)[None]
   if settings.objective == "grid":
-    loss = objectives.grid_chamfer(grids[0], warped, settings.truncate)
+    loss = distance_grid.grid_chamfer(grids[0], warped, settings.truncate)
   else:
     loss = objectives.chamfer_terms(warped, pc2_Mx3[None], match[:2], settings.truncate)
   if "inverse" in params:
     back = warped - apply_mlp(params["inverse"], warped[0], settings.precision)[None]
     if settings.objective == "grid":
-      loss = loss + objectives.grid_chamfer(grids[1], back, settings.truncate)
+      loss = loss + distance_grid.grid_chamfer(grids[1], back, settings.truncate)
     else:
       loss = loss + objectives.chamfer_terms(back, pc1_Nx3[None], match[2:], settings.truncate)
   if settings.smoothness:
@@ -160,11 +161,12 @@ def _search(params, pair, settings: Settings):
   return match
 
 
-def _one_pair(pair, grids, settings: Settings):
+def _loop(pair, grids, nbr_NxK, settings: Settings):
+  """The pieces of one pair's optimisation: (carry, block(carry, match) -> carry, running(carry),
+  finish(carry, start loss) -> (flow, info)). A block is `refresh` scanned steps with the nearest
+  points `match` (of `_search`) held fixed."""
   init_Nx3, pc1_Nx3, _, clusters = pair
   grids = jax.tree.map(lambda a: a[None], grids)  # the objectives take batches
-  nbr_NxK = (objectives.neighbours(pc1_Nx3[None], settings.neighbours, settings.search)[0]
-             if settings.smoothness else jnp.zeros((pc1_Nx3.shape[0], 1), jnp.int32))
   opt = optax.chain(optax.add_decayed_weights(settings.weight_decay),
                     optax.adam(settings.learning_rate))
   params = _init_params(settings, pc1_Nx3.shape[0])
@@ -187,64 +189,180 @@ def _one_pair(pair, grids, settings: Settings):
     params = keep(optax.apply_updates(params, updates), params)
     return (params, keep(new_state, state), best, best_flow, since, count + active), None
 
-  def block(carry):
-    match = _search(carry[0], pair, settings)
-    carry, _ = jax.lax.scan(lambda c, _: step(c, match), carry, None, length=settings.refresh)
-    return carry
+  def block(carry, match):
+    return jax.lax.scan(lambda c, _: step(c, match), carry, None, length=settings.refresh)[0]
 
   def running(carry):
     return (carry[4] < patience) & (carry[5] < settings.steps)
 
-  start = _loss(params, pair, nbr_NxK, grids, _search(params, pair, settings), settings)
+  def finish(carry, start):
+    params, _, best, best_flow, since, count = carry
+    if settings.steps == 0:
+      best, best_flow = start, flow_of(params)
+    # A flow that went non-finite (it cannot with finite inputs, but a user's cloud can surprise)
+    # falls back to the starting flow.
+    finite = jnp.all(jnp.isfinite(best_flow))
+    best_flow = jnp.where(finite, best_flow, init_Nx3)
+    info = {"steps": count, "stopped": since >= patience, "loss_start": start,
+            "loss_best": best, "finite": finite}
+    return best_flow, info
+
   zero = jnp.zeros((), jnp.int32)
   carry = (params, opt.init(params), jnp.float32(jnp.inf), flow_of(params), zero, zero)
-  params, _, best, best_flow, since, count = jax.lax.while_loop(running, block, carry)
-  if settings.steps == 0:
-    best, best_flow = start, flow_of(params)
-  # A flow that went non-finite (it cannot with finite inputs, but a user's cloud can surprise)
-  # falls back to the starting flow.
-  finite = jnp.all(jnp.isfinite(best_flow))
-  best_flow = jnp.where(finite, best_flow, init_Nx3)
-  info = {"steps": count, "stopped": since >= patience, "loss_start": start, "loss_best": best,
-          "finite": finite}
-  return best_flow, info
+  return carry, block, running, finish
+
+
+def _neighbours(pc1_Nx3, settings: Settings):
+  """pc1's kNN graph of the smoothness term (a placeholder without it)."""
+  if not settings.smoothness:
+    return jnp.zeros((pc1_Nx3.shape[0], 1), jnp.int32)
+  return objectives.neighbours(pc1_Nx3[None], settings.neighbours, settings.search)[0]
+
+
+def _one_pair(pair, grids, nbr_NxK, settings: Settings):
+  nbr_NxK = _neighbours(pair[1], settings) if nbr_NxK is None else nbr_NxK
+  carry, block, running, finish = _loop(pair, grids, nbr_NxK, settings)
+  start = _loss(carry[0], pair, nbr_NxK, jax.tree.map(lambda a: a[None], grids),
+                _search(carry[0], pair, settings), settings)
+  carry = jax.lax.while_loop(running, lambda c: block(c, _search(c[0], pair, settings)), carry)
+  return finish(carry, start)
 
 
 def _centre(pc1_BxNx3):
   return jnp.mean(pc1_BxNx3, axis=1, keepdims=True)
 
 
-def distance_grids(pc1_BxNx3, pc2_BxMx3, settings: Settings):
+def distance_grids(pc1_BxNx3, pc2_BxMx3, settings: Settings, now: bool = False):
   """The distance grids `optimise` builds for the grid objective (of pc2, and of pc1 for NSFP's
-  cycle term), in its centred frame: build once, pass to several `optimise` calls on a pair."""
+  cycle term), in its centred frame: build once, pass to several `optimise` calls on a pair.
+  `now`: built at once, outside jit, with no host callback (distance_grid.distance_grid_now)."""
   if settings.objective != "grid":
     return ((), ())
+  build = distance_grid.distance_grid_now if now else distance_grid.distance_grid
   centre_Bx1x3 = _centre(pc1_BxNx3)
   margin = settings.truncate + 2 * settings.cell
-  grids = (objectives.distance_grid(pc2_BxMx3 - centre_Bx1x3, settings.cell, settings.max_cells,
-                                    margin, settings.search),)
+  grids = (build(pc2_BxMx3 - centre_Bx1x3, settings.cell, settings.max_cells, margin,
+                 settings.search),)
   if settings.model == "mlp" and settings.cycle:
-    return grids + (objectives.distance_grid(pc1_BxNx3 - centre_Bx1x3, settings.cell,
-                                             settings.max_cells, margin, settings.search),)
+    return grids + (build(pc1_BxNx3 - centre_Bx1x3, settings.cell, settings.max_cells, margin,
+                          settings.search),)
   return grids + (grids[0],)  # unused
 
 
-@functools.partial(jax.jit, static_argnames="settings")
-def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(), grids=None):
-  """(flow B x N x 3 of the lowest loss, info: B-vectors steps, stopped (early stopping fired),
-  loss_start, loss_best, finite). Model "rigid" needs `clusters` = (labels, R, centroid,
-  translation) from jaxflow.rigid_clusters (`clusters`, `fit`) and does not use `init`. `grids`: those of
-  `distance_grids` for these clouds and settings (None: built here)."""
-  if settings.model == "rigid" and len(clusters) != 4:
-    raise ValueError("optimiser model 'rigid' needs clusters = (labels, R, centroid, translation)")
-  if grids is None:
-    grids = distance_grids(pc1_BxNx3, pc2_BxMx3, settings)
+def _centred(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters):
+  """The pair (init, pc1, pc2, clusters) in the frame centred on pc1's mean."""
   centre_Bx1x3 = _centre(pc1_BxNx3)
-  pc1_BxNx3, pc2_BxMx3 = pc1_BxNx3 - centre_Bx1x3, pc2_BxMx3 - centre_Bx1x3
   if clusters:  # the centroids move with the clouds
     clusters = (clusters[0], clusters[1], clusters[2] - centre_Bx1x3, clusters[3])
-  fn = lambda *pair_and_grids: _one_pair(pair_and_grids[:4], pair_and_grids[4], settings)
-  return jax.vmap(fn)(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters, grids)
+  return init_BxNx3, pc1_BxNx3 - centre_Bx1x3, pc2_BxMx3 - centre_Bx1x3, clusters
+
+
+def _check(settings: Settings, clusters):
+  if settings.model == "rigid" and len(clusters) != 4:
+    raise ValueError("optimiser model 'rigid' needs clusters = (labels, R, centroid, translation)")
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(), grids=None,
+             nbr_BxNxK=None):
+  """(flow B x N x 3 of the lowest loss, info: B-vectors steps, stopped (early stopping fired),
+  loss_start, loss_best, finite). Model "rigid" needs `clusters` = (labels, R, centroid,
+  translation) from jaxflow.rigid_clusters (`clusters`, `fit`) and does not use `init`. `grids`:
+  those of `distance_grids` for these clouds and settings (None: built here); `nbr_BxNxK`: pc1's
+  graph of the smoothness term (objectives.neighbours; None: searched here)."""
+  _check(settings, clusters)
+  if grids is None:
+    grids = distance_grids(pc1_BxNx3, pc2_BxMx3, settings)
+  pair = _centred(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters)
+  if nbr_BxNxK is None:
+    return jax.vmap(lambda *a: _one_pair(a[:4], a[4], None, settings))(*pair, grids)
+  return jax.vmap(lambda *a: _one_pair(a[:4], a[4], a[5], settings))(*pair, grids, nbr_BxNxK)
+
+
+# The same optimisation driven from Python: every nearest-point search runs between compiled
+# blocks, so no compiled program calls back to the host (JAX's persistent compilation cache keeps
+# only such programs: a second process reads them back instead of compiling).
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def _host_start(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters, settings: Settings):
+  pair = _centred(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters)
+  dummy = jnp.zeros(pc1_BxNx3.shape[:2] + (1,), jnp.int32)
+  carry = jax.vmap(lambda *p: _loop(p[:4], ((), ()), p[4], settings)[0])(*pair, dummy)
+  return pair, carry
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def _host_warped(carry, pair, settings: Settings):
+  """The clouds the exact objective searches for the current parameters: ((query, points), ...)."""
+  init, pc1, pc2, clusters = pair
+  flow = jax.vmap(lambda p, i, a, c: _flow(p, i, a, c, settings.precision))(
+    carry[0], init, pc1, clusters)
+  warped = pc1 + flow
+  searched = ((warped, pc2), (pc2, warped))
+  if "inverse" in carry[0]:
+    back = warped - jax.vmap(lambda w, x: apply_mlp(w, x, settings.precision))(
+      carry[0]["inverse"], warped)
+    searched += ((back, pc1), (pc1, back))
+  return searched
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def _host_block(carry, pair, grids, nbr_BxNxK, match, settings: Settings):
+  def one(carry, pair, grids, nbr, match):
+    return _loop(pair, grids, nbr, settings)[1](carry, match)
+  return jax.vmap(one)(carry, pair, grids, nbr_BxNxK, match)
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def _host_loss(carry, pair, grids, nbr_BxNxK, match, settings: Settings):
+  def one(carry, pair, grids, nbr, match):
+    return _loss(carry[0], pair, nbr, jax.tree.map(lambda a: a[None], grids), match, settings)
+  return jax.vmap(one)(carry, pair, grids, nbr_BxNxK, match)
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def _host_result(carry, pair, grids, nbr_BxNxK, start_B, settings: Settings):
+  def one(carry, pair, grids, nbr, start):
+    return _loop(pair, grids, nbr, settings)[3](carry, start)
+  return jax.vmap(one)(carry, pair, grids, nbr_BxNxK, start_B)
+
+
+@functools.partial(jax.jit, static_argnames="settings")
+def _host_running(carry, pair, settings: Settings):
+  dummy = jnp.zeros(pair[1].shape[:2] + (1,), jnp.int32)
+  return jax.vmap(lambda c, *p: _loop(p[:4], ((), ()), p[4], settings)[2](c))(carry, *pair, dummy)
+
+
+def optimise_host_loop(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(),
+                       grids=None, nbr_BxNxK=None):
+  """`optimise`'s result, the nearest points of the exact objective searched from Python between
+  compiled blocks of `refresh` steps (objectives.host_search on the CPU, the device's search
+  elsewhere) instead of inside one compiled loop. `grids` (grid objective) and `nbr_BxNxK`
+  (smoothness) are searched here when not given, the same way."""
+  _check(settings, clusters)
+  search = settings.search
+  if grids is None:
+    grids = distance_grids(pc1_BxNx3, pc2_BxMx3, settings, now=True)
+  if nbr_BxNxK is None:
+    nbr_BxNxK = (objectives.neighbours_now(pc1_BxNx3, settings.neighbours, search)
+                 if settings.smoothness else jnp.zeros(pc1_BxNx3.shape[:2] + (1,), jnp.int32))
+  pair, carry = _host_start(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters, settings)
+
+  def match(carry):
+    if settings.objective == "grid":
+      return ()
+    return tuple(objectives.nearest_now(q, p, search)[:, None]  # each pair's as a batch of one
+                 for q, p in _host_warped(carry, pair, settings))
+
+  running = lambda carry: bool(np.any(np.asarray(_host_running(carry, pair, settings))))
+  held = match(carry)
+  start = _host_loss(carry, pair, grids, nbr_BxNxK, held, settings)
+  while running(carry):
+    carry = _host_block(carry, pair, grids, nbr_BxNxK, held, settings)
+    if running(carry):
+      held = match(carry)
+  return _host_result(carry, pair, grids, nbr_BxNxK, start, settings)
 
 
 # NSFP's published settings (github.com/Lilac-Lee/Neural_Scene_Flow_Prior): MLP 8 x 128, ReLU,

@@ -55,7 +55,7 @@ exits with code 2.
 import pathlib
 import sys
 
-from jaxflow import cli, export, ground, inference, methods, submission
+from jaxflow import cli, export, ground, inference, submission
 from jaxflow.errors import ConfigError
 
 
@@ -117,7 +117,8 @@ def main(argv):
 
   pc1, note1 = inference.read_cloud(pc1_path, FLAGS.columns)
   pc2, note2 = inference.read_cloud(pc2_path, FLAGS.columns)
-  load = (FLAGS.checkpoint, config, model_fields, FLAGS.method, FLAGS.steps, FLAGS.objective)
+  load = (FLAGS.checkpoint, config, model_fields, FLAGS.method, FLAGS.steps, FLAGS.objective,
+          FLAGS.iters)
   # --lidar: the method runs on a camera's view, or as a start of the fits when --method is given;
   # a 360-degree sweep alone loads no checkpoint.
   predictor = (inference.DeferredPredictor(*load) if FLAGS.lidar else
@@ -157,7 +158,10 @@ def main(argv):
   else:
     how = "ground and far points removed; " if FLAGS.lidar else ""
     how += "; ".join(_used(name, n, max_points) for name, n in zip(("PC1", "PC2"), prediction.used))
-    how += f"; {num_iters} iterations" if FLAGS.method in methods.NEEDS_NETWORK else ""
+    if FLAGS.method == "optimise":
+      how += f"; {predictor.method_settings.start_iters or num_iters} network iterations"
+    elif FLAGS.method == "network":
+      how += f"; {num_iters} iterations"
     how += f"; method {FLAGS.method}" + (" at every point" if FLAGS.method == "optimise" else "")
     if FLAGS.method == "nsfp":
       how += f" ({predictor.method_settings.objective} objective)"

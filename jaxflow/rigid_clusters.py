@@ -39,10 +39,12 @@ class Settings:
     objectives.check_search(self.search, "rigid search")
 
 
-def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings):
-  """Cluster label of each point (B x N, int32): the smallest point index of its component."""
+def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings, nbr_BxNxK=None):
+  """Cluster label of each point (B x N, int32): the smallest point index of its component.
+  `nbr_BxNxK`: each point's `settings.neighbours` + 1 nearest, itself included (None: searched)."""
   k = min(settings.neighbours + 1, pc1_BxNx3.shape[1])
-  nbr_BxNxK = objectives.knn(pc1_BxNx3, pc1_BxNx3, k, settings.search)
+  if nbr_BxNxK is None:
+    nbr_BxNxK = objectives.knn(pc1_BxNx3, pc1_BxNx3, k, settings.search)
   near = jnp.sum((geometry.gather(pc1_BxNx3, nbr_BxNxK) - pc1_BxNx3[:, :, None]) ** 2, -1)
   same = jnp.sum((geometry.gather(flow_BxNx3, nbr_BxNxK) - flow_BxNx3[:, :, None]) ** 2, -1)
   linked_BxNxK = (near <= settings.radius**2) & (same <= settings.flow_tolerance**2)
@@ -126,14 +128,16 @@ def rigid_flow(p_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3, precision: str = "highe
   return moved + cen_Nx3[labels_N] + t_Nx3[labels_N] - p_Nx3
 
 
-def choose(labels_BxN, flows, pc1_BxNx3, pc2_BxMx3, truncate: float, search: str = "auto"):
+def choose(labels_BxN, flows, pc1_BxNx3, pc2_BxMx3, truncate: float, search: str = "auto",
+           matches=None):
   """Per cluster, the candidate flow (of `flows`, each B x N x 3) whose warped points lie nearest
-  pc2 on average (truncated squared distance to the nearest pc2 point); ties go to the first."""
+  pc2 on average (truncated squared distance to the nearest pc2 point); ties go to the first.
+  `matches`: each flow's objectives.nearest(pc1 + flow, pc2) (None: searched)."""
   costs = []
-  for flow in flows:
+  for i, flow in enumerate(flows):
     warped = pc1_BxNx3 + flow
-    sq_BxN = objectives.matched_sq(warped, pc2_BxMx3,
-                                  objectives.nearest(warped, pc2_BxMx3, search))
+    match = objectives.nearest(warped, pc2_BxMx3, search) if matches is None else matches[i]
+    sq_BxN = objectives.matched_sq(warped, pc2_BxMx3, match)
     per = jax.vmap(lambda c, lab: jax.ops.segment_sum(c, lab, num_segments=c.shape[0]))
     costs.append(per(jnp.minimum(sq_BxN, truncate**2), labels_BxN))
   best_BxN = jnp.argmin(jnp.stack(costs), axis=0)  # per cluster slot

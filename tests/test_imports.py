@@ -103,15 +103,21 @@ def test_no_module_over_400_lines():
 
 # Imports with an effect on the importer, each checked in a fresh process: matplotlib's backend
 # chosen (a notebook's inline plots lost), absl flags defined (a tool's flags clash with the
-# importer's). The child imports the third-party packages first, records their state, then forks
-# once per module (each module imported into a fresh copy of that state).
+# importer's), environment variables set (XLA_FLAGS read by a backend started later), jax's
+# config changed (x64, a compilation cache, matmul precision), handlers added to the root logger
+# (every library's log lines printed twice). The child imports the third-party packages first,
+# records their state, then forks once per module (each module imported into a fresh copy).
 SIDE_EFFECTS = r"""
-import json, os, sys
+import json, logging, os, sys, warnings
 import absl.app, absl.flags, absl.logging, matplotlib  # absl.app and logging define their flags
 import jax, flax, optax, numpy, ml_collections, orbax.checkpoint, scipy.spatial  # noqa: F401
 # (third-party: paid once before the forks; orbax defines absl flags of its own at import)
 backend = dict.__getitem__(matplotlib.rcParams, "backend")
 flags = sorted(absl.flags.FLAGS)
+environ = dict(os.environ)
+config = {k: repr(v) for k, v in jax.config.values.items()}
+handlers = list(logging.getLogger().handlers)
+showwarning = warnings.showwarning
 found = {}
 for name in sys.argv[1:]:
   read, write = os.pipe()
@@ -122,7 +128,12 @@ for name in sys.argv[1:]:
       __import__(name)
       got = {"backend": str(dict.__getitem__(matplotlib.rcParams, "backend"))
                         if dict.__getitem__(matplotlib.rcParams, "backend") is not backend else None,
-             "flags": sorted(set(absl.flags.FLAGS) - set(flags))}
+             "flags": sorted(set(absl.flags.FLAGS) - set(flags)),
+             "environ": sorted(k for k in set(os.environ) | set(environ)
+                               if os.environ.get(k) != environ.get(k)),
+             "config": sorted(k for k, v in jax.config.values.items() if config.get(k) != repr(v)),
+             "handlers": [repr(h) for h in logging.getLogger().handlers if h not in handlers],
+             "showwarning": warnings.showwarning is not showwarning}
     except Exception as e:  # noqa: BLE001
       got = {"error": f"{type(e).__name__}: {e}"}
     os.write(write, json.dumps(got).encode())
@@ -133,7 +144,7 @@ for name in sys.argv[1:]:
   os.waitpid(pid, 0)
 print(json.dumps(found))
 """
-def test_importing_a_module_changes_neither_matplotlib_nor_absl_flags():
+def test_importing_a_module_changes_nothing_of_the_importer():
   import json
   import os
   import subprocess
@@ -148,8 +159,28 @@ def test_importing_a_module_changes_neither_matplotlib_nor_absl_flags():
   assert set(found) == set(names)
   errors = {n: r["error"] for n, r in found.items() if "error" in r}
   assert errors == {}
-  effects = {n: r for n, r in found.items() if r["backend"] is not None or r["flags"]}
+  effects = {n: r for n, r in found.items()
+             if r["backend"] is not None or any(r[k] for k in r if k != "backend")}
   assert effects == {}, effects
+
+
+def test_the_side_effect_check_can_fail(tmp_path):
+  """The same child on a module that sets an environment variable, jax's config and a root
+  logger handler: each is reported."""
+  import json
+  import os
+  import subprocess
+  import sys
+
+  (tmp_path / "noisy.py").write_text(
+    "import logging, os, jax\nos.environ['XLA_FLAGS'] = '--xla_dump_to=/tmp'\n"
+    "jax.config.update('jax_enable_x64', True)\nlogging.getLogger().addHandler(logging.StreamHandler())\n")
+  env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{PACKAGE.parent}", "JAX_PLATFORMS": "cpu"}
+  done = subprocess.run([sys.executable, "-c", SIDE_EFFECTS, "noisy"], capture_output=True,
+                        text=True, timeout=300, env=env)
+  assert done.returncode == 0, done.stderr[-3000:]
+  got = json.loads(done.stdout.strip().splitlines()[-1])["noisy"]
+  assert got["environ"] == ["XLA_FLAGS"] and "jax_enable_x64" in got["config"] and got["handlers"]
 
 
 def test_a_point_file_reader_imports_neither_h5py_nor_the_scene_generator():

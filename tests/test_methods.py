@@ -8,7 +8,6 @@ import os
 import subprocess
 import sys
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -108,7 +107,7 @@ def _degenerate_pairs():
   ("nsfp", _TINY_NSFP), ("nsfp", dataclasses.replace(_TINY_NSFP, objective="grid")),
   ("optimise", _TINY)])
 def test_degenerate_clouds_give_finite_flows(method, chosen):
-  fn = jax.jit(methods.flow_fn(method, _ZERO_NETWORK, chosen, with_info=True))
+  fn = methods.flow_fn(method, _ZERO_NETWORK, chosen, with_info=True)
   pc1, pc2 = _degenerate_pairs()
   flow, info = fn(None, pc1, pc2)
   assert np.isfinite(np.asarray(flow)).all() and np.asarray(info["finite"]).all()
@@ -200,3 +199,24 @@ def test_nsfp_command_errors_are_one_line(runs):
     lines = stderr.strip().splitlines()
     assert rc == 2 and len(lines) == 1 and lines[0].startswith("error: "), stderr
     assert all(w in lines[0] for w in words), lines[0]
+
+
+@pytest.mark.parametrize("chosen", [
+  dataclasses.replace(_TINY_NSFP, patience=3, min_delta=1.0),  # early stopping fires at once
+  dataclasses.replace(methods.Optimise().polish, steps=30),
+  dataclasses.replace(_TINY_NSFP, objective="grid")])
+def test_the_loop_driven_from_python_gives_the_compiled_loop_result(chosen):
+  """optimiser.optimise_host_loop (searches between compiled blocks, what the methods run) and
+  optimiser.optimise (one compiled loop, searches by host callback) take the same steps."""
+  rng = np.random.default_rng(5)
+  pc1 = rng.uniform(-2, 2, (2, 200, 3)).astype(np.float32)
+  pc2 = pc1 + rng.normal(0, 0.05, pc1.shape).astype(np.float32) + [0.2, 0.0, 0.1]
+  start = jnp.asarray(rng.normal(0, 0.1, pc1.shape), jnp.float32)
+  flow, info = optimiser.optimise(start, pc1, pc2, chosen)
+  host_flow, host_info = optimiser.optimise_host_loop(start, pc1, pc2, chosen)
+  np.testing.assert_allclose(np.asarray(host_flow), np.asarray(flow), atol=1e-5)
+  for key in ("steps", "stopped", "finite"):
+    np.testing.assert_array_equal(np.asarray(host_info[key]), np.asarray(info[key]), key)
+  np.testing.assert_allclose(np.asarray(host_info["loss_best"]), np.asarray(info["loss_best"]),
+                             rtol=1e-5)
+  assert (np.asarray(info["steps"]) < chosen.steps).all() == (chosen.patience == 3)

@@ -1,5 +1,5 @@
-"""model.precision reaches every matmul of the network, its gradient and its kNN; every method of
-jaxflow.methods lowers with every matmul at its configured precision and, for a GPU, with no host
+"""model.precision reaches every matmul of the network, its gradient and its kNN; every program a
+method of jaxflow.methods compiles has every matmul at its configured precision and no host
 callback; the table of model fields (jaxflow.model_fields) covers the model and gives old
 checkpoints the defaults."""
 
@@ -159,52 +159,73 @@ def configured(chosen, **fields):
   return dataclasses.replace(chosen, **changes)
 
 
-def traced_method(method, precision=None, **fields):
-  """jit(flow_fn(method)) traced on a toy pair, the network at `precision` (None: defaults)."""
+def lowered_by_method(tmp_path, method, precision=None, **fields):
+  """The text of every program `method` lowers when it runs on a toy pair (jax_dump_ir_to), the
+  network at `precision` (None: defaults). The methods are driven from Python between compiled
+  stages (jaxflow.methods.flow_fn): what they compile is what they lowered."""
   pc1, pc2 = pair(n=64)
   model = build_model(tiny_model_config(**({} if precision is None else {"precision": precision})))
-  params = jax.eval_shape(lambda: model.init(jax.random.key(0), pc1, pc2, num_iters=1))["params"]
+  init = lambda: model.init(jax.random.key(0), pc1, pc2, num_iters=1)["params"]
+  params = jax.eval_shape(init) if method == "network" else init()
   network = lambda p, a, b: model.apply({"params": p}, a, b, num_iters=2)["flows"][:, -1]
-  chosen = methods.settings(method)
+  chosen = methods.settings(method, steps=20)
   if precision is not None:
     fields["precision"] = precision
   chosen = configured(chosen, **fields)
-  return jax.jit(methods.flow_fn(method, network, chosen)).trace(params, pc1, pc2)
+  if method == "network":  # one jitted program: lowered, not run
+    return [methods.flow_fn(method, network, chosen).lower(params, pc1, pc2).as_text()]
+  folder = tmp_path / f"{method}-{precision}-{len(fields)}"
+  jax.clear_caches()  # every stage lowered again, in this folder
+  with _dumping(folder):
+    jax.block_until_ready(methods.flow_fn(method, network, chosen)(params, pc1, pc2))
+  texts = [f.read_text() for f in sorted(folder.glob("*.mlir"))]
+  assert texts, f"nothing lowered into {folder}"
+  return texts
 
 
-@pytest.mark.parametrize("method", methods.METHODS)
-def test_every_dot_of_every_method_carries_the_precision(method):
-  """Lowered, not run: the whole method (the network, NSFP's MLPs and their gradients, the
-  optimise stages' Kabsch, Rodrigues and rigid flows) states HIGHEST on every dot by default, and
-  the configured precision when one is set."""
-  found = dot_precisions(traced_method(method).lower().as_text())
-  assert len(found) >= 40, len(found)  # the network alone holds 50, NSFP's two MLPs 89
-  assert set(found) == {"HIGHEST,HIGHEST"}, sorted(set(found))
-  found = dot_precisions(traced_method(method, "default").lower().as_text())
-  assert len(found) >= 40 and set(found) == {"DEFAULT,DEFAULT"}, sorted(set(found))
+class _dumping:
+  """jax_dump_ir_to set to `folder` inside the block."""
+
+  def __init__(self, folder):
+    self.folder, self.before = folder, None
+
+  def __enter__(self):
+    self.before = jax.config.read("jax_dump_ir_to")
+    jax.config.update("jax_dump_ir_to", str(self.folder))
+
+  def __exit__(self, *_):
+    jax.config.update("jax_dump_ir_to", self.before)
 
 
 def callbacks(text: str) -> list[str]:
   return [line for line in text.splitlines() if "custom_call" in line and "callback" in line]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", methods.METHODS)
-def test_no_host_round_trip_on_an_accelerator(method):
-  """With the search "auto" (the default), a program lowered for a GPU holds no host callback
-  (this CPU-only jax cannot even lower one for CUDA: the lowering itself would fail), and one
-  forced onto the device path on the CPU holds none either; lowered for the CPU it uses the host's
-  k-d tree (every method but the network). The one exception is optimise's last stage
-  (jaxflow.bodies, NumPy on the host): one callback a call, after every loop; without it the GPU
-  program holds none, and with it the CPU program holds exactly one more."""
-  without_bodies = {"bodies": None} if method == "optimise" else {}
-  traced = traced_method(method, **without_bodies)
-  assert callbacks(traced.lower(lowering_platforms=("cuda",)).as_text()) == []
-  assert callbacks(traced_method(method, search="device", **without_bodies).lower().as_text()) == []
-  on_cpu = callbacks(traced.lower(lowering_platforms=("cpu",)).as_text())
-  assert bool(on_cpu) == (method != "network")
-  if method == "optimise":
-    with_bodies = callbacks(traced_method(method).lower(lowering_platforms=("cpu",)).as_text())
-    assert len(with_bodies) == len(on_cpu) + 1
+def test_every_program_of_a_method_carries_the_precision_and_no_callback(method, tmp_path):
+  """Every program a method compiles (the network, NSFP's MLPs and their gradients, the optimise
+  stages' Kabsch, Rodrigues and rigid flows) states HIGHEST on every dot by default and the
+  configured precision when one is set; none holds a host callback, with the searches on the host
+  (the CPU's "auto") or on the device (an accelerator's): the k-d tree searches, the distance grids
+  and the rigid-bodies stage run between compiled stages. JAX's persistent compilation cache keeps
+  only such programs (jaxflow.compile_cache), and a GPU program never waits on the host."""
+  runs = {"HIGHEST": lowered_by_method(tmp_path, method),
+          "DEFAULT": lowered_by_method(tmp_path, method, "default",
+                                       **({} if method == "network" else {"search": "device"}))}
+  for want, texts in runs.items():
+    found = [p for text in texts for p in dot_precisions(text)]
+    assert len(found) >= 40, len(found)  # the network alone holds 50, NSFP's two MLPs 89
+    assert set(found) == {f"{want},{want}"}, sorted(set(found))
+    assert [c for text in texts for c in callbacks(text)] == [], want
+
+
+def test_the_callback_check_can_fail():
+  """The jitted optimiser with its searches inside does call back to the host on the CPU."""
+  from jaxflow import optimiser  # pylint: disable=import-outside-toplevel
+  pc1, pc2 = pair(n=64)
+  assert callbacks(optimiser.optimise.lower(jnp.zeros_like(pc1), pc1, pc2,
+                                            optimiser.NSFP).as_text())
 
 
 def test_a_bad_precision_or_search_is_refused():

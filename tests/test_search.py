@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow import objectives, optimiser
+from jaxflow import distance_grid, objectives, optimiser
 
 
 def sweep_like(n: int, seed: int):
@@ -97,10 +97,10 @@ def test_device_distance_grid_is_exact_and_the_host_one_within_a_cell():
   rng = np.random.default_rng(4)
   pts = (rng.uniform(-3, 3, (2, 400, 3)) * [1, 1, 0.3]).astype(np.float32)
   cell, max_cells, margin = 0.25, 6000, 0.6
-  host = objectives.distance_grid(jnp.asarray(pts), cell, max_cells, margin, "host")
-  device = objectives.distance_grid(jnp.asarray(pts), cell, max_cells, margin, "device")
+  host = distance_grid.distance_grid(jnp.asarray(pts), cell, max_cells, margin, "host")
+  device = distance_grid.distance_grid(jnp.asarray(pts), cell, max_cells, margin, "device")
   for b in range(2):
-    origin, size, dims, _ = objectives.distance_grid_np(pts[b].astype(np.float64), cell, max_cells,
+    origin, size, dims, _ = distance_grid.distance_grid_np(pts[b].astype(np.float64), cell, max_cells,
                                                         margin)
     np.testing.assert_allclose(np.asarray(device.origin_Bx3[b]), origin, atol=1e-5)
     np.testing.assert_allclose(float(device.cell_B[b]), size, rtol=1e-5)
