@@ -26,7 +26,7 @@ from typing import Any, Callable
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from jaxflow import compile_cache, configfile, determinism
+from jaxflow import configfile, determinism
 from jaxflow.errors import ConfigError, JaxflowError
 
 EXIT_USER_ERROR = 2
@@ -212,15 +212,16 @@ def _parse_flags(argv: list[str], config_names=()) -> list[str]:
       fail(str(e))
   if not flags.FLAGS["verbosity"].present:  # orbax and jax log every step of a save at INFO
     logging.set_verbosity(logging.WARNING)
-  note = compile_cache.enable(flags.FLAGS.compilation_cache)  # (before anything compiles)
-  if note:
-    print(f"note: {note}", file=sys.stderr)
   if flags.FLAGS.print_config:
     text = []
     for name in config_names:
       path = config_flags.get_config_filename(flags.FLAGS[name])
       text.append(configfile.describe(flags.FLAGS[name].value, path.split(":")[0], name) + "\n")
     _write_and_exit("".join(text))
+  from jaxflow import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)
+  note = compile_cache.enable(flags.FLAGS.compilation_cache)  # (before anything compiles)
+  if note:
+    print(f"note: {note}", file=sys.stderr)
   return argv
 
 
@@ -252,7 +253,7 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
                     "(docs/methods.md, Determinism).")
   flags.DEFINE_string("compilation_cache", None, "Folder of JAX's persistent compilation cache: a "
                       "second run reads back what the first compiled (default: "
-                      f"${compile_cache.ENV}, else ~/.cache/jaxflow/xla; 'off': none; "
+                      "$JAXFLOW_COMPILATION_CACHE, else ~/.cache/jaxflow/xla; 'off': none; "
                       "jaxflow.compile_cache).")
   for name in sorted(set(flags.FLAGS) - before):  # --help shows sys.argv[0]'s key flags
     if "." not in name:  # the config's fields: --print_config lists them
