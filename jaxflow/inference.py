@@ -156,8 +156,10 @@ class Predictor:
     every_point = self.method == "optimise"  # the network sees samples, the optimiser every point
     if every_point:  # the network's flow of the samples starts optimise: the method's settings
       start, num_iters = methods.start_network(self.model, num_iters, self.method_settings)
-      fn = evaluation.model_predict_fn(start, num_iters, self.refine, with_info=True)
-      fn = self._fns.setdefault(("start", start.truncate_k, num_iters), fn)
+      key = ("start", start.truncate_k, num_iters)
+      if key not in self._fns:
+        self._fns[key] = evaluation.model_predict_fn(start, num_iters, self.refine, with_info=True)
+      fn = self._fns[key]
     else:
       fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0), self.method)
     flow_Sx3, info = fn(self.params, sub1[None], sub2[None])

@@ -112,16 +112,13 @@ def resolved(search: str) -> str:
   return "host" if jax.default_backend() == "cpu" else "device"
 
 
-_device_knn = jax.jit(lambda q, p, k: device_knn(q, p, k), static_argnums=2)
-
-
 def knn_now(query_BxNx3, points_BxMx3, k: int, search: str = "auto"):
   """`knn`'s indices computed at once, outside jit (no host callback in any compiled program):
   the host's k-d tree (host_search) or the device's search, by `resolved(search)`."""
   k = min(k, points_BxMx3.shape[1])
   if resolved(search) == "host":
     return jnp.asarray(host_search(query_BxNx3, points_BxMx3, k))
-  return _device_knn(query_BxNx3, points_BxMx3, k)
+  return _device_knn(query_BxNx3, points_BxMx3, k=k)
 
 
 def nearest_now(query_BxNx3, points_BxMx3, search: str = "auto"):
@@ -157,6 +154,9 @@ def device_knn(query_BxNx3, points_BxMx3, k: int, block: int = DEVICE_BLOCK_ELEM
 
   rows = max(1, block // max(m, 1))
   return geometry.map_row_chunks(select, (jax.lax.stop_gradient(query_BxNx3),), rows)
+
+
+_device_knn = jax.jit(device_knn, static_argnames=("k", "block"))
 
 
 def knn(query_BxNx3, points_BxMx3, k: int, search: str = "auto"):

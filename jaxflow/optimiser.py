@@ -24,7 +24,6 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 
 from jaxflow import distance_grid, objectives, rigid_clusters
@@ -309,9 +308,13 @@ def _host_warped(carry, pair, settings: Settings):
 
 @functools.partial(jax.jit, static_argnames="settings")
 def _host_block(carry, pair, grids, nbr_BxNxK, match, settings: Settings):
+  """One block of every pair, and whether any pair still runs after it."""
   def one(carry, pair, grids, nbr, match):
-    return _loop(pair, grids, nbr, settings)[1](carry, match)
-  return jax.vmap(one)(carry, pair, grids, nbr_BxNxK, match)
+    _, block, running, _ = _loop(pair, grids, nbr, settings)
+    carry = block(carry, match)
+    return carry, running(carry)
+  carry, running_B = jax.vmap(one)(carry, pair, grids, nbr_BxNxK, match)
+  return carry, jnp.any(running_B)
 
 
 @functools.partial(jax.jit, static_argnames="settings")
@@ -326,12 +329,6 @@ def _host_result(carry, pair, grids, nbr_BxNxK, start_B, settings: Settings):
   def one(carry, pair, grids, nbr, start):
     return _loop(pair, grids, nbr, settings)[3](carry, start)
   return jax.vmap(one)(carry, pair, grids, nbr_BxNxK, start_B)
-
-
-@functools.partial(jax.jit, static_argnames="settings")
-def _host_running(carry, pair, settings: Settings):
-  dummy = jnp.zeros(pair[1].shape[:2] + (1,), jnp.int32)
-  return jax.vmap(lambda c, *p: _loop(p[:4], ((), ()), p[4], settings)[2](c))(carry, *pair, dummy)
 
 
 def optimise_host_loop(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(),
@@ -355,12 +352,13 @@ def optimise_host_loop(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clu
     return tuple(objectives.nearest_now(q, p, search)[:, None]  # each pair's as a batch of one
                  for q, p in _host_warped(carry, pair, settings))
 
-  running = lambda carry: bool(np.any(np.asarray(_host_running(carry, pair, settings))))
   held = match(carry)
   start = _host_loss(carry, pair, grids, nbr_BxNxK, held, settings)
-  while running(carry):
-    carry = _host_block(carry, pair, grids, nbr_BxNxK, held, settings)
-    if running(carry):
+  running = settings.steps > 0  # (patience >= 1: every pair runs its first step)
+  while running:
+    carry, running = _host_block(carry, pair, grids, nbr_BxNxK, held, settings)
+    running = bool(running)
+    if running:
       held = match(carry)
   return _host_result(carry, pair, grids, nbr_BxNxK, start, settings)
 

@@ -176,25 +176,15 @@ def lowered_by_method(tmp_path, method, precision=None, **fields):
     return [methods.flow_fn(method, network, chosen).lower(params, pc1, pc2).as_text()]
   folder = tmp_path / f"{method}-{precision}-{len(fields)}"
   jax.clear_caches()  # every stage lowered again, in this folder
-  with _dumping(folder):
+  before = jax.config.read("jax_dump_ir_to")
+  jax.config.update("jax_dump_ir_to", str(folder))
+  try:
     jax.block_until_ready(methods.flow_fn(method, network, chosen)(params, pc1, pc2))
+  finally:
+    jax.config.update("jax_dump_ir_to", before)
   texts = [f.read_text() for f in sorted(folder.glob("*.mlir"))]
   assert texts, f"nothing lowered into {folder}"
   return texts
-
-
-class _dumping:
-  """jax_dump_ir_to set to `folder` inside the block."""
-
-  def __init__(self, folder):
-    self.folder, self.before = folder, None
-
-  def __enter__(self):
-    self.before = jax.config.read("jax_dump_ir_to")
-    jax.config.update("jax_dump_ir_to", str(self.folder))
-
-  def __exit__(self, *_):
-    jax.config.update("jax_dump_ir_to", self.before)
 
 
 def callbacks(text: str) -> list[str]:
