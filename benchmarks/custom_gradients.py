@@ -2,12 +2,12 @@
 
     python -m benchmarks.custom_gradients --points 2048 --candidates 128 --iters 16
 
-Rows add, in turn, `jaxflow.layers.neighbour_max` (GCL: gradient at the winning neighbour only) and
-`jaxflow.correlation.cell_means` (voxel cells: gradient from the cell index and counts), then
-`model.remat_iterations` (the backward recomputes each iteration from its carry). For each:
-the compiled gradient's temporary memory (XLA's memory_analysis, the same on every run), the median
-wall time after compilation, and the largest difference of any gradient from plain autodiff's,
-relative to that parameter's largest gradient.
+Rows add, in turn, `jaxflow.network.layers.neighbour_max` (GCL: gradient at the winning neighbour
+only) and `jaxflow.network.correlation.cell_means` (voxel cells: gradient from the cell index and
+counts), then `model.remat_iterations` (the backward recomputes each iteration from its carry). For
+each: the compiled gradient's temporary memory (XLA's memory_analysis, the same on every run), the
+median wall time after compilation, and the largest difference of any gradient from plain
+autodiff's, relative to that parameter's largest gradient.
 """
 
 import jax
@@ -16,8 +16,9 @@ import numpy as np
 
 from benchmarks.model_speed import CONFIGS, device_line, model_parser, timed
 from benchmarks.voxel_cells import temp_mib
-from jaxflow import correlation, layers, losses
-from jaxflow.model import build_model
+from jaxflow.network import correlation, layers
+from jaxflow.network.model import build_model
+from jaxflow.training import losses
 
 
 def plain_neighbour_max(support, unit_v, unit_e, nbr, similarity):

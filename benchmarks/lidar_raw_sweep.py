@@ -1,9 +1,9 @@
-r"""Raw sweep vs the loader's cut on the shared KITTI frame (issue 21): EPE, points and times.
+r"""Raw sweep vs the loader's cut on the shared KITTI frame: EPE, points and times.
 
     PYTHONPATH=. python benchmarks/lidar_raw_sweep.py [FRAME_FOLDER]   # default: the shared 000002
 
-The frame's pc1.npy / pc2.npy hold the whole frame, ground included, rows corresponding
-(flow = pc2 - pc1). "cut": predict on the pair the KITTI loader gives (ground y < -1.4 and z >= 35 removed).
+The frame's pc1.npy / pc2.npy hold the whole frame, ground included, rows corresponding (flow = pc2
+- pc1). "cut": predict on the pair the KITTI loader gives (ground y < -1.4 and z >= 35 removed).
 "raw": predict on the whole frame as it is. "raw --lidar": predict with the ground plane fit and the
 35 m range cut (camera frame: up = y). EPE of each on the points the loader keeps (the same points
 in the three rows), and of --lidar on the points it kept itself and on those it filled with the
@@ -17,8 +17,10 @@ import time
 
 import numpy as np
 
-from jaxflow import ground, inference, rigid
+from jaxflow import inference
 from jaxflow.data.readers import kitti_keep
+from jaxflow.geometry import rigid
+from jaxflow.lidar import ground
 
 FRAME = pathlib.Path(__file__).resolve().parents[2] / "shared/data/KITTI_processed_occ_final/000002"
 
@@ -47,7 +49,8 @@ def main(frame=FRAME, seeds=3):
       results[name][1].append(time.perf_counter() - start)
       results[name][0].append(epe(flow, loader))
   start = time.perf_counter()
-  keep1, ground1, plane = ground.lidar_keep(raw1, "y")
+  surface, ground1 = ground.find_ground(raw1, "y")
+  keep1 = ~ground1 & ground.within_range(raw1, "y", 35.0)
   t_ground = time.perf_counter() - start
   prediction = predictor.predict(raw1, raw2, lidar=True, up="y")
   lidar, info = prediction.flow, prediction.sweep
@@ -56,8 +59,8 @@ def main(frame=FRAME, seeds=3):
   t_rigid = time.perf_counter() - start
   rule = raw1[:, 1] < -1.4
   print(f"frame {frame}: {len(raw1)} points; seeds 0..{seeds - 1} (sampling to 8192)")
-  print(f"ground plane of pc1: normal {np.round(plane.normal, 4)}, height {-plane.offset:.3f} m, "
-        f"tilt {plane.tilt_deg:.2f} deg; removed {ground1.sum()} (y < -1.4 rule: {rule.sum()}; "
+  print(f"ground of pc1 (a plane per cell): the sensor {surface.sensor_height:.3f} m above it; "
+        f"removed {ground1.sum()} (y < -1.4 rule: {rule.sum()}; "
         f"both {(ground1 & rule).sum()}, plane only {(ground1 & ~rule).sum()}, rule only "
         f"{(rule & ~ground1).sum()}); fit {t_ground:.2f} s, rigid fit {t_rigid:.2f} s")
   print(info.note())

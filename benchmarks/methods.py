@@ -8,7 +8,7 @@ its "train_all" and "val" splits read one after the other, each pair's EPE in th
 first --synthetic val pairs of synthetic_things and synthetic_lidar, 8192 points a cloud (the
 evaluation sampling, seed 0). The network is the shipped checkpoint. Seconds a pair are the wall
 time of the compiled method (compilation excluded; for optimise the network's time is included) on
-this machine. `--no-bodies`: optimise without its last stage (what jaxflow.bodies gains).
+this machine. `--no-bodies`: optimise without its last stage (what jaxflow.methods.bodies gains).
 """
 
 import argparse
@@ -23,8 +23,10 @@ import time
 import jax
 import numpy as np
 
-from jaxflow import checkpointing, evaluation, methods
 from jaxflow.data import eval_batches, open_dataset
+from jaxflow.evaluation import evaluator
+from jaxflow.methods import registry
+from jaxflow.network import checkpointing
 
 DATA = pathlib.Path(__file__).absolute().parent.parent.parent / "shared" / "data"
 
@@ -50,15 +52,15 @@ def main():
   parser.add_argument("--methods", default="network,nsfp,optimise")
   parser.add_argument("--num-points", type=int, default=8192)
   parser.add_argument("--no-bodies", action="store_true",
-                      help="optimise without its last stage (jaxflow.bodies): the gain it brings")
+                      help="optimise without its last stage (jaxflow.methods.bodies): the gain it brings")
   args = parser.parse_args()
   model, params, _, _, refine = checkpointing.load_for_inference(None)
   rows, results = [], {}
   for method in args.methods.split(","):
-    chosen = methods.settings(method, args.nsfp_steps if method == "nsfp" else None)
+    chosen = registry.settings(method, args.nsfp_steps if method == "nsfp" else None)
     if method == "optimise" and args.no_bodies:
       chosen = dataclasses.replace(chosen, bodies=None)
-    predict = evaluation.model_predict_fn(model, 32, refine, method=method, method_settings=chosen,
+    predict = registry.model_predict_fn(model, 32, refine, method=method, method_settings=chosen,
                                           with_info=method != "network")
     compiled = {}  # one compilation for every dataset (same shapes)
     for name, spec, splits, _ in datasets(args.synthetic):
@@ -73,10 +75,10 @@ def main():
                                                seed=0) for split in splits))
       start = time.perf_counter()
       # pylint: disable-next=protected-access
-      r = evaluation._run(predict, (params,), batches, compiled=compiled, on_batch=(record,))
+      r = evaluator._run(predict, (params,), batches, compiled=compiled, on_batch=(record,))
       r["wall_s"] = time.perf_counter() - start
       r["per_pair_epe"] = per_pair
-      r.update(methods.describe(method, chosen))
+      r.update(registry.describe(method, chosen))
       results[f"{method} / {name}"] = r
       rows.append((method, name, r))
       print(f"{method:8s} {name:16s} EPE {r['epe']:.4f} AccS {r['acc_strict']:.1f} "

@@ -16,8 +16,8 @@ import numpy as np
 import optax
 
 from jaxflow.configs import ablation, default, pvraft
-from jaxflow import losses
-from jaxflow.model import build_model
+from jaxflow.network.model import build_model
+from jaxflow.training import losses
 
 CONFIGS = {
   "default_full": lambda: ablation.get_config("gcl_rc_sgfi").model,  # the paper's full model

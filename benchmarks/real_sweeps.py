@@ -10,13 +10,15 @@ halves, the second moved by the same motion) and `--pairs` pairs of the generato
 forms: as generated (a roof sensor at the origin), a dense city seen from Argoverse 2's ego frame
 (origin 0.33 m above the road, two stacked 32-beam sensors), and with the ground removed.
 - ground: share of pc1 taken as ground, and precision / recall where the truth is known (the
-  generator), for jaxflow.ground.fit_surface and Patchwork++ (pypatchworkpp, if installed) at its
-  default sensor height (1.73 m) and at the height jaxflow's fit finds;
-- ego-motion: translation (cm) and rotation (deg) error against the known motion, for jaxflow.ego
+  generator), for jaxflow.lidar.ground.fit_surface and Patchwork++ (pypatchworkpp, if installed) at
+  its default sensor height (1.73 m) and at the height jaxflow's fit finds;
+- ego-motion: translation (cm) and rotation (deg) error against the known motion, for
+jaxflow.lidar.ego
   (GICP from several starts, the residual's choice), small_gicp's GICP and VGICP at their untuned
   defaults (0.25 m voxels, 10 neighbours, 1 m matches) and KISS-ICP (kiss-icp, if installed; two
   frames, its default config);
-- flow (`jaxflow.sweep.raw_sweep_flow`, what `predict --lidar` runs): FD / FS / BS and three-way
+- flow (`jaxflow.lidar.sweep.raw_sweep_flow`, what `predict --lidar` runs): FD / FS / BS and
+three-way
   (av2's classes: dynamic = |flow - ego flow| >= 0.05 m; labelled points with |x|, |y| <= 50 m,
   the generator's ground left out; three-way = the mean of the three, per pair, then over pairs),
   the unlabelled pair's median nearest-neighbour distance of pc1 + flow to pc2 (zero flow's beside
@@ -35,8 +37,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from jaxflow import ego, ground, metrics, rigid, sweep
 from jaxflow.data import synthetic_sweep as ss
+from jaxflow.evaluation import metrics
+from jaxflow.geometry import rigid
+from jaxflow.lidar import ego, ground, sweep
 
 REAL = pathlib.Path(__file__).resolve().parents[2] / "shared/data/real_sweeps"
 MOTION = rigid.Motion(Rotation.from_euler("z", 2.0, degrees=True).as_matrix(),
@@ -93,7 +97,7 @@ def ground_rows(pc1, truth):
     own, height = surface.ground(pc1), surface.sensor_height
   except Exception:  # pylint: disable=broad-except  (no plane: no ground)
     own, height = np.zeros(len(pc1), bool), 1.73
-  rows["jaxflow.ground"] = own, time.perf_counter() - start
+  rows["jaxflow.lidar.ground"] = own, time.perf_counter() - start
   try:
     for name, h in (("Patchwork++ (1.73 m)", 1.73), ("Patchwork++ (jaxflow's height)", height)):
       start = time.perf_counter()
@@ -130,7 +134,7 @@ def small_gicp_default(pc1, pc2, kind):
 
 def ego_rows(pc1, pc2, truth):
   """{method: (translation error cm, rotation error deg, seconds)}."""
-  methods = {"jaxflow.ego": lambda: ego.estimate(pc1, pc2).motion,
+  methods = {"jaxflow.lidar.ego": lambda: ego.estimate(pc1, pc2).motion,
              "small_gicp GICP (defaults)": lambda: small_gicp_default(pc1, pc2, "GICP"),
              "small_gicp VGICP (defaults)": lambda: small_gicp_default(pc1, pc2, "VGICP")}
   if importlib.util.find_spec("kiss_icp"):  # optional: measured where installed

@@ -1,11 +1,12 @@
-r"""Raw LiDAR sweeps (issue 26): jaxflow.sweep on the synthetic 360-degree sweeps' TEST split and
+r"""Raw LiDAR sweeps: jaxflow.lidar.sweep on the synthetic 360-degree sweeps' TEST split and
 the raw shared KITTI frame, and what each piece gains. Prints markdown tables, writes JSON.
 
     PYTHONPATH=. python benchmarks/sweeps.py --pairs 10 [--network-pairs 3] --json OUT.json
 
 Rows (three-way EPE of the AV2 challenge over each pair's eval mask: non-ground, |x|, |y| <= 50 m;
 FD / FS / BS averaged over the pairs that have such points, "mean" over the pairs' means):
-- zero flow; the ego-motion alone (jaxflow.ego; every point static); the default pipeline (ego +
+- zero flow; the ego-motion alone (jaxflow.lidar.ego; every point static); the default pipeline (ego
++
   moving objects); the same on 8192-point samples of each sweep (the network's input size);
 - with --nsfp-pairs: NSFP (published settings) on the same 8192-point samples, their true ground
   points left out (the field's protocol removes the ground first; ground points are not scored),
@@ -15,8 +16,9 @@ FD / FS / BS averaged over the pairs that have such points, "mean" over the pair
   the rigid motion fitted to its static part), both with the network alone (8192 points, 32
   iterations), on the first pairs only (a network call takes 5-80 s on a loaded 2-core CPU).
 Seconds: wall time a pair in this process (the machine may be shared; the JSON says how loaded).
-Then the official readings of the same flows (jaxflow.av2_eval, equal to av2's evaluator): the av2
-breakdown count-weighted over the split (EPE 3-Way Average) and the 2024 bucketed normalised EPE.
+Then the official readings of the same flows (jaxflow.evaluation.av2_eval, equal to av2's
+evaluator): the av2 breakdown count-weighted over the split (EPE 3-Way Average) and the 2024
+bucketed normalised EPE.
 """
 
 import argparse
@@ -28,8 +30,10 @@ import time
 
 import numpy as np
 
-from jaxflow import av2_eval, metrics, rigid, sweep
 from jaxflow.data import synthetic_sweep as ss
+from jaxflow.evaluation import av2_eval, metrics
+from jaxflow.geometry import rigid
+from jaxflow.lidar import sweep
 
 KITTI = pathlib.Path(__file__).resolve().parents[2] / "shared/data/KITTI_processed_occ_final/000002"
 
@@ -49,7 +53,7 @@ def subsample(s, n, seed=0):
 def old_lidar(network, s):
   """The previous --lidar: network on the non-ground points within 35 m (one RANSAC plane per
   sweep), the rigid fit to its static part for the rest."""
-  from jaxflow import ground  # pylint: disable=import-outside-toplevel
+  from jaxflow.lidar import ground  # pylint: disable=import-outside-toplevel
   k1 = ~ground.fit_ground(s.pc1).ground(s.pc1) & ground.within_range(s.pc1)
   k2 = ~ground.fit_ground(s.pc2).ground(s.pc2) & ground.within_range(s.pc2)
   kept = network(s.pc1[k1], s.pc2[k2])

@@ -1,4 +1,4 @@
-"""The voxel branch's forms (jaxflow.correlation.voxel_means) in the whole model, one process.
+"""The voxel branch's forms (jaxflow.network.correlation.voxel_means) in the whole model, one process.
 
     python -m benchmarks.voxel_cells --points 8192 --candidates 512 --iters 32
 
@@ -15,8 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.model_speed import CONFIGS, device_line, model_parser, timed
-from jaxflow import correlation, losses
-from jaxflow.model import build_model
+from jaxflow.network import correlation
+from jaxflow.network.model import build_model
+from jaxflow.training import losses
 
 
 def one_cell_at_a_time(corr_BxNxK, index_BxNxK, cells, scatter):

@@ -1,3 +1,19 @@
-"""jaxflow: graph-based scene flow estimation in JAX/Flax."""
+"""jaxflow: graph-based scene flow estimation in JAX/Flax.
+
+The package, lowest layer first (a module imports its own package and the layers below it only;
+tests/test_imports.py checks this):
+
+    errors, configs, configfile, determinism, compile_cache, distributed   shared helpers
+    geometry/     neighbours, rigid motions, frames, visibility
+    data/         datasets, point files, sampling, batching
+    network/      the model, its layers, checkpoints
+    methods/      per-pair methods (network, nsfp, optimise) and their objectives
+    lidar/        raw sweeps: ground, ego-motion, objects
+    viz/          pictures and the 3D viewer
+    evaluation/   metrics, the evaluation loop, reports, flow files, AV2 submissions
+    training/     the training loop, losses, logs, events
+    cli, inference                                  flags; flow for your own clouds (the API)
+    predict, evaluate, train, summary, import_pvraft; nsfp    the commands (python -m jaxflow.X)
+"""
 
 __version__ = "0.1.0"

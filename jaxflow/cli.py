@@ -1,8 +1,8 @@
 """Shared command-line wrapper: a user's mistake is one line on stderr and exit code 2.
 
-    from jaxflow import cli
-    cli.run(main)              # absl: checks the config flags, parses, then main(argv)
-    cli.guard(main, args)      # any other parser: calls main(args) with the same error handling
+    from jaxflow import cli cli.run(main)              # absl: checks the config flags, parses, then
+    main(argv) cli.guard(main, args)      # any other parser: calls main(args) with the same error
+    handling
 
 `jaxflow.errors.JaxflowError` (bad file, argument, checkpoint, non-finite training), absl flag
 errors, a config file that does not load and a `--config.FIELD` that names no field print
@@ -114,7 +114,7 @@ def requested_model_fields(config_flag) -> list[str]:
   """The `config.model` fields a user asked for on a command line (`config_flag`: the absl flag of
   a config file): those given as `--config.model.FIELD=...` and, with an explicit config file, every
   field of its model except the runtime ones, which stay the checkpoint's unless given."""
-  from jaxflow.model_fields import RUNTIME_MODEL_FIELDS  # pylint: disable=import-outside-toplevel
+  from jaxflow.network.model_fields import RUNTIME_MODEL_FIELDS  # pylint: disable=import-outside-toplevel
 
   given = {k.split(".", 1)[1] for k in config_flags.get_override_values(config_flag)
            if k.startswith("model.")}
@@ -136,9 +136,9 @@ def define_process_flags():
 def define_run_flags(default_method: str):
   """The flags predict and evaluate.py share, with one meaning in both: --method, --steps,
   --objective, --iters, --max_points, --full, --corr_chunk, --seed, --save_flows."""
-  from jaxflow import methods  # pylint: disable=import-outside-toplevel
+  from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
 
-  flags.DEFINE_enum("method", default_method, list(methods.METHODS), "network: the network alone "
+  flags.DEFINE_enum("method", default_method, list(registry.METHODS), "network: the network alone "
                     "(the paper's protocol); optimise: the network's flow refined per pair; nsfp: "
                     f"the NSFP baseline, no checkpoint (docs/methods.md). Default {default_method}.")
   flags.DEFINE_integer("steps", None, "Cap the optimisation steps of nsfp / optimise.")
@@ -156,7 +156,7 @@ def define_run_flags(default_method: str):
                        "0: all at once).")
   flags.DEFINE_integer("seed", None, "Seed of the point sampling (default: config.eval.seed, 0).")
   flags.DEFINE_string("save_flows", None, "Write the flow of every pair into this folder, one "
-                      "NAME.npy per pair, NAME made from the pair (jaxflow.export).")
+                      "NAME.npy per pair, NAME made from the pair (jaxflow.evaluation.export).")
 
 
 def run_settings(config):

@@ -8,22 +8,23 @@ AccR, outliers, angle), pairs and ms a pair.
 
 The model comes from the checkpoint (workdir, checkpoints folder or step folder; default: the
 shipped jaxflow/checkpoints/jaxflow_synthetic/). The config (default configs/default.py:eval: 8192
-points, 32 iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; the
-flags shared with predict say the same in both tools (--iters, --max_points, --full, --corr_chunk,
---seed: config.eval.num_iters / num_points / seed, config.model.corr_chunk). --dataset and --split
-default to config.eval.dataset and config.eval.split. --method (jaxflow.methods) is `network` (the
+points, 32 iterations, one pair per batch) and --config.eval.FIELD=... set the evaluation; the flags
+shared with predict say the same in both tools (--iters, --max_points, --full, --corr_chunk, --seed:
+config.eval.num_iters / num_points / seed, config.model.corr_chunk). --dataset and --split default
+to config.eval.dataset and config.eval.split. --method (jaxflow.methods.registry) is `network` (the
 paper's protocol) by default; optimise and nsfp are the per-pair optimisation methods
 (docs/methods.md; predict's default is optimise). A dataset with ego-motion flow and labels
-(opensf:DIR) also gets the official Argoverse 2 numbers (jaxflow.av2_eval; docs/training.md) in
-the tables and the JSON, and --submission DIR writes the challenge's files (jaxflow.submission).
---save_flows DIR writes the flow of every pair (one .npy per pair, named by the pair),
---render_dir DIR the Fig. 2 view of every pair (predict's --render FILE: one pair). Many processes:
---coordinator, --num_processes, --process_id (jaxflow.distributed).
+(opensf:DIR) also gets the official Argoverse 2 numbers (jaxflow.evaluation.av2_eval;
+docs/training.md) in the tables and the JSON, and --submission DIR writes the challenge's files
+(jaxflow.evaluation.submission). --save_flows DIR writes the flow of every pair (one .npy per pair,
+named by the pair), --render_dir DIR the Fig. 2 view of every pair (predict's --render FILE: one
+pair). Many processes: --coordinator, --num_processes, --process_id (jaxflow.distributed).
 """
 
 import functools
 
-from jaxflow import cli, distributed, evaluation, export, inference, reporting
+from jaxflow import cli, distributed, inference
+from jaxflow.evaluation import evaluator, export, reporting
 
 
 def _define_flags():
@@ -40,9 +41,9 @@ def _define_flags():
   flags.DEFINE_string("split", None, "Dataset split (default: config.eval.split).")
   flags.DEFINE_string("json", None, "Write the results here as JSON.")
   flags.DEFINE_string("render_dir", None, "Render every pair into this folder as NAME.png "
-                      "(jaxflow.viz).")
+                      "(jaxflow.viz.figures).")
   flags.DEFINE_string("submission", None, "Write the AV2 challenge's files into this folder "
-                      "(jaxflow.submission: <log_id>/<timestamp_ns>.feather, annotations in "
+                      "(jaxflow.evaluation.submission: <log_id>/<timestamp_ns>.feather, annotations in "
                       "DIR_annotations; opensf datasets, --max_points 0).")
   cli.define_run_flags("network")
 
@@ -61,7 +62,7 @@ def main(argv):
     on_batch.append(export.FlowSaver(FLAGS.save_flows).add)
   if FLAGS.render_dir:
     on_batch.append(functools.partial(reporting.render_batch, FLAGS.render_dir))
-  results = evaluation.evaluate_checkpoint(FLAGS.checkpoint, config, FLAGS.dataset, FLAGS.split,
+  results = evaluator.evaluate_checkpoint(FLAGS.checkpoint, config, FLAGS.dataset, FLAGS.split,
                                            model_fields, FLAGS.method, chosen, on_batch,
                                            submission_dir=FLAGS.submission)
   if distributed.is_primary():

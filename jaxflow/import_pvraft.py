@@ -155,8 +155,8 @@ def main(argv=None):
   import jax
   import jax.numpy as jnp
   from jaxflow.configs import pvraft
-  from jaxflow import checkpointing
-  from jaxflow.model import build_model
+  from jaxflow.network import checkpointing
+  from jaxflow.network.model import build_model
 
   imported, has_refine = convert_state_dict(load_weights(args.weights))
   # The official RSF_refine (with refinement: a stage-2 run, which evaluates refined) or RSF.

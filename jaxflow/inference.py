@@ -1,4 +1,4 @@
-"""Flow of two point clouds by a method of jaxflow.methods: the library side of jaxflow.predict.
+"""Flow of two point clouds by a method of jaxflow.methods.registry: the library side of jaxflow.predict.
 
     flow_Nx3 = predict_flow(pc1_Nx3, pc2_Mx3)                    # optimise, as the command
     flow_Nx3 = predict_flow(pc1_Nx3, pc2_Mx3, method="network")  # the network alone
@@ -14,11 +14,12 @@ flow of its nearest sampled pc1 point (Euclidean; a sampled point keeps its own)
 `full=True` runs the model on the whole clouds instead, with the correlation and kNN built
 `corr_chunk` pc1 rows at a time (memory linear in the points; time grows as N x M).
 
-Raw sweeps (`lidar=True`): jaxflow.sweep.raw_sweep_flow, the ground, the sensor's ego-motion and
-one rigid motion per moving object; every pc1 point gets a row. The method itself runs only on a
+Raw sweeps (`lidar=True`): jaxflow.lidar.sweep.raw_sweep_flow, the ground, the sensor's ego-motion
+and one rigid motion per moving object; every pc1 point gets a row. The method itself runs only on a
 camera's view (under half the azimuth: the non-ground points within `max_range`), or as one more
 start for the fits with `use_network=True` (predict --lidar with an explicit --method);
-`DeferredPredictor` loads the checkpoint only then.
+`DeferredPredictor` loads the checkpoint only then. `sweep_settings`: the pipeline's settings
+(jaxflow/configs/sweep.py's get_config(), changed; None: its defaults); `max_range` None: theirs.
 """
 
 import dataclasses
@@ -30,10 +31,13 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from jaxflow import checkpointing, evaluation, frames, geometry, ground, methods, optimiser, sweep
 from jaxflow.data.pointfiles import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
+from jaxflow.geometry import frames, ops
+from jaxflow.lidar import sweep
+from jaxflow.methods import registry, optimiser
+from jaxflow.network import checkpointing
 
 DEFAULT_METHOD = "optimise"  # the API's and predict's: the network's flow refined per pair
 DEFAULT_MAX_POINTS = 8192  # the paper's evaluation size
@@ -50,13 +54,13 @@ class Prediction:
   notes: tuple = ()  # non-convergence of an optimisation, a lopsided pair
   used: tuple = ()  # (pc1, pc2) points the method was given (after the lidar cut)
   sweep: object = None  # sweep.SweepInfo with lidar=True
-  up: str = frames.MODEL_UP  # the up axis of the clouds (jaxflow.frames): the flow is in their frame
+  up: str = frames.MODEL_UP  # the up axis of the clouds (jaxflow.geometry.frames): the flow is in their frame
 
 
 def method_settings(method: str, steps: int | None = None, objective: str | None = None,
                     iters: int | None = None):
-  """methods.settings(method, steps, iters), with NSFP's objective (exact or grid) when given."""
-  chosen = methods.settings(method, steps, iters if method == "optimise" else None)
+  """registry.settings(method, steps, iters), with NSFP's objective (exact or grid) when given."""
+  chosen = registry.settings(method, steps, iters if method == "optimise" else None)
   if objective is None:
     return chosen
   if method != "nsfp":
@@ -86,7 +90,7 @@ class Predictor:
   config: ml_collections.ConfigDict  # the checkpoint's config (the model it was built from)
   refine: bool  # the refined flow (stage 2) or the last iteration's
   name: str = ""  # checkpoint path and step, for messages
-  method: str = "network"  # jaxflow.methods: network, nsfp (model None) or optimise
+  method: str = DEFAULT_METHOD  # jaxflow.methods.registry: network, nsfp (model None) or optimise
   method_settings: object = None  # None: the method's defaults
   _fns: dict = dataclasses.field(default_factory=dict, repr=False)  # compiled, by shapes' settings
 
@@ -102,7 +106,7 @@ class Predictor:
       model = self.model if self.model is None or corr_chunk == self.model.corr_chunk else (
         self.model.clone(corr_chunk=corr_chunk))
       chosen = self.method_settings if method == self.method else None
-      self._fns[key] = evaluation.model_predict_fn(model, num_iters, self.refine, method, chosen,
+      self._fns[key] = registry.model_predict_fn(model, num_iters, self.refine, method, chosen,
                                                    with_info=True)
     return self._fns[key]
 
@@ -113,18 +117,18 @@ class Predictor:
   def predict(self, pc1_Nx3, pc2_Mx3, num_iters: int = DEFAULT_ITERS,
               max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False,
               corr_chunk: int | None = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
-              lidar: bool = False, up: str | None = None,
-              max_range: float | None = ground.DEFAULT_MAX_RANGE, ground_limits: bool = True,
-              use_network: bool = False) -> Prediction:
+              lidar: bool = False, up: str | None = None, max_range: float | None = None,
+              ground_limits: bool = True, use_network: bool = False,
+              sweep_settings: ml_collections.ConfigDict | None = None) -> Prediction:
     """The Prediction of every point of pc1 (the module docstring: sampling, full, lidar). `up`:
-    the clouds' up axis (default z with lidar, else y, the models' frame; jaxflow.frames): the
-    clouds are rotated into the models' frame for the method and the flow back. `corr_chunk`
+    the clouds' up axis (default z with lidar, else y, the models' frame; jaxflow.geometry.frames):
+    the clouds are rotated into the models' frame for the method and the flow back. `corr_chunk`
     None: the model's own."""
     kwargs = dict(num_iters=num_iters, max_points=max_points, full=full, corr_chunk=corr_chunk,
                   seed=seed)
     if lidar:
       return sweep_prediction(lambda: self, pc1_Nx3, pc2_Mx3, names, up, max_range, ground_limits,
-                              use_network, **kwargs)
+                              use_network, sweep_settings, **kwargs)
     up = up or frames.MODEL_UP
     inner = self._predict(frames.to_model(as_cloud(pc1_Nx3, names[0], self.min_points), up),
                           frames.to_model(as_cloud(pc2_Mx3, names[1], self.min_points), up),
@@ -155,10 +159,10 @@ class Predictor:
     sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
     every_point = self.method == "optimise"  # the network sees samples, the optimiser every point
     if every_point:  # the network's flow of the samples starts optimise: the method's settings
-      start, num_iters = methods.start_network(self.model, num_iters, self.method_settings)
+      start, num_iters = registry.start_network(self.model, num_iters, self.method_settings)
       key = ("start", start.truncate_k, num_iters)
       if key not in self._fns:
-        self._fns[key] = evaluation.model_predict_fn(start, num_iters, self.refine, with_info=True)
+        self._fns[key] = registry.model_predict_fn(start, num_iters, self.refine, with_info=True)
       fn = self._fns[key]
     else:
       fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0), self.method)
@@ -173,18 +177,22 @@ class Predictor:
     return self._prediction(flow_Nx3, info, notes, used)
 
   def _prediction(self, flow_Nx3, info, notes, used) -> Prediction:
-    notes = [*notes, methods.convergence_note(self.method, jax.device_get(info))]
+    notes = [*notes, registry.convergence_note(self.method, jax.device_get(info))]
     return Prediction(np.asarray(flow_Nx3, np.float32), tuple(n for n in notes if n), used)
 
 
 def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: str | None = None,
-                     max_range: float | None = ground.DEFAULT_MAX_RANGE,
-                     ground_limits: bool = True, use_network: bool = False,
+                     max_range: float | None = None, ground_limits: bool = True,
+                     use_network: bool = False,
+                     sweep_settings: ml_collections.ConfigDict | None = None,
                      **kwargs) -> Prediction:
-  """The Prediction of raw sweeps (jaxflow.sweep); `get_predictor()` gives the method's Predictor,
-  called only when the method runs (a camera's view, or `use_network`): a 360-degree sweep loads
-  no network. `kwargs`: Predictor.predict's sampling arguments."""
+  """The Prediction of raw sweeps (jaxflow.lidar.sweep); `get_predictor()` gives the method's
+  Predictor, called only when the method runs (a camera's view, or `use_network`): a 360-degree
+  sweep loads no network. `sweep_settings`: raw_sweep_flow's `settings`; `kwargs`:
+  Predictor.predict's sampling arguments."""
   up = up or "z"
+  sweep_settings = sweep.settings_of(sweep_settings)
+  max_range = sweep_settings.max_range if max_range is None else max_range
   kwargs = {**dict(num_iters=DEFAULT_ITERS, max_points=DEFAULT_MAX_POINTS, full=False,
                    corr_chunk=DEFAULT_CORR_CHUNK, seed=0), **kwargs}
   kept_names = tuple(f"{n} (after ground removal and the {max_range} m cut)" for n in names)
@@ -200,7 +208,8 @@ def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: 
   clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
   flow, info = sweep.raw_sweep_flow(frames.in_model_frame(estimate, up), *clouds, up=up,
                                     max_range=max_range, names=names,
-                                    ground_limits=ground_limits, use_network=use_network)
+                                    ground_limits=ground_limits, use_network=use_network,
+                                    settings=sweep_settings)
   notes = inner[-1].notes if inner else tuple(n for n in [lopsided(*info.kept)] if n)
   return Prediction(np.asarray(flow, np.float32), notes, info.kept, info, up)
 
@@ -222,12 +231,13 @@ class DeferredPredictor:
     return self._loaded
 
   def predict(self, pc1_Nx3, pc2_Mx3, lidar: bool = False, names=("pc1", "pc2"),
-              up: str | None = None, max_range: float | None = ground.DEFAULT_MAX_RANGE,
-              ground_limits: bool = True, use_network: bool = False, **kwargs) -> Prediction:
+              up: str | None = None, max_range: float | None = None,
+              ground_limits: bool = True, use_network: bool = False,
+              sweep_settings: ml_collections.ConfigDict | None = None, **kwargs) -> Prediction:
     if not lidar:
       return self.get().predict(pc1_Nx3, pc2_Mx3, names=names, up=up, **kwargs)
     return sweep_prediction(self.get, pc1_Nx3, pc2_Mx3, names, up, max_range, ground_limits,
-                            use_network, **kwargs)
+                            use_network, sweep_settings, **kwargs)
 
   def __getattr__(self, name):  # name, method, method_settings, model, ...: the loaded one's
     if name.startswith("_"):
@@ -239,7 +249,7 @@ class DeferredPredictor:
 def _from_start(chosen):
   """jit (start flow, pc1, pc2) -> (flow, info) of `optimise` from a given starting flow (the
   network's flow of the samples spread to every point)."""
-  return methods.flow_fn("optimise", lambda start, pc1, pc2: start, chosen, with_info=True)
+  return registry.flow_fn("optimise", lambda start, pc1, pc2: start, chosen, with_info=True)
 
 
 def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndarray:
@@ -250,7 +260,7 @@ def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndar
 
 @functools.partial(jax.jit, static_argnums=3)
 def _spread(points_Nx3, sampled_Sx3, flow_Sx3, chunk):
-  nearest_N = geometry.knn(points_Nx3[None], sampled_Sx3[None], 1, chunk)[0, :, 0]
+  nearest_N = ops.knn(points_Nx3[None], sampled_Sx3[None], 1, chunk)[0, :, 0]
   return flow_Sx3[nearest_N]
 
 
@@ -271,14 +281,14 @@ def as_cloud(points, name, min_points: int) -> np.ndarray:
 
 
 def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = None,
-                   model_fields=(), method: str = "network", steps: int | None = None,
+                   model_fields=(), method: str = DEFAULT_METHOD, steps: int | None = None,
                    objective: str | None = None, iters: int | None = None) -> Predictor:
-  """The Predictor of `method` (jaxflow.methods; `steps` caps its optimiser, `objective` is
+  """The Predictor of `method` (jaxflow.methods.registry; `steps` caps its optimiser, `objective` is
   NSFP's, `iters` sets optimise's starting flow's iterations) with the model of a checkpoint
   (workdir, checkpoints folder or step folder; None: the shipped one; nsfp loads none).
   `model_fields`: checkpointing.load_for_inference."""
   chosen = method_settings(method, steps, objective, iters)
-  if method not in methods.NEEDS_NETWORK:
+  if method not in registry.NEEDS_NETWORK:
     return Predictor(None, None, ml_collections.ConfigDict({"model": {"knn": 1}}), False,
                      name="NSFP, no network", method=method, method_settings=chosen)
   model, params, saved, step, refine = checkpointing.load_for_inference(checkpoint, config,
@@ -288,15 +298,15 @@ def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = N
 
 
 def fresh_predictor(config: ml_collections.ConfigDict, seed: int = 0,
-                    method: str = "network") -> Predictor:
+                    method: str = DEFAULT_METHOD) -> Predictor:
   """An untrained model of `config.model` (random parameters): for trying the API without weights."""
-  from jaxflow import train_state  # pylint: disable=import-outside-toplevel
-  from jaxflow.model import build_model  # pylint: disable=import-outside-toplevel
+  from jaxflow.network import train_state  # pylint: disable=import-outside-toplevel
+  from jaxflow.network.model import build_model  # pylint: disable=import-outside-toplevel
 
   model = build_model(config.model)
   params = train_state.init_params(model, config, jax.random.key(seed))
   return Predictor(model, params, config, refine=False, name="fresh (untrained)", method=method,
-                   method_settings=methods.settings(method))
+                   method_settings=registry.settings(method))
 
 
 @functools.lru_cache(maxsize=4)
@@ -309,12 +319,13 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
                  num_iters: int = DEFAULT_ITERS, max_points: int | None = DEFAULT_MAX_POINTS,
                  full: bool = False, corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
                  predictor: Predictor | None = None, lidar: bool = False, up: str | None = None,
-                 max_range: float | None = ground.DEFAULT_MAX_RANGE,
-                 ground_limits: bool = True) -> np.ndarray:
+                 max_range: float | None = None, ground_limits: bool = True,
+                 sweep_settings: ml_collections.ConfigDict | None = None) -> np.ndarray:
   """Flow N x 3 (float32) of every point of pc1 towards pc2 by `method` (default DEFAULT_METHOD,
   `optimise`, as `python -m jaxflow.predict`); the checkpoint (None: the shipped one) is loaded once
   and kept. `predictor` (load_predictor / fresh_predictor) replaces checkpoint and method. The
-  Prediction's notes (non-convergence, a lopsided pair) are issued as warnings."""
+  Prediction's notes (non-convergence, a lopsided pair) are issued as warnings. `lidar=True`:
+  raw sweeps (the module docstring), tuned by `sweep_settings`."""
   if predictor is None:
     predictor = _cached_predictor(None if checkpoint is None else str(checkpoint),
                                   method or DEFAULT_METHOD, steps, objective)
@@ -322,7 +333,8 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
     raise ConfigError(f"method={method!r} but the predictor given runs {predictor.method!r}")
   prediction = predictor.predict(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points,
                                  full=full, corr_chunk=corr_chunk, seed=seed, lidar=lidar, up=up,
-                                 max_range=max_range, ground_limits=ground_limits)
+                                 max_range=max_range, ground_limits=ground_limits,
+                                 sweep_settings=sweep_settings)
   for note in prediction.notes:
     warnings.warn(note, stacklevel=2)
   return prediction.flow

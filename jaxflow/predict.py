@@ -1,6 +1,7 @@
 r"""Scene flow of your own point files (jaxflow-predict): the flow of every point of PC1.
 
     python -m jaxflow.predict SWEEP1 SWEEP2 --lidar [--up z] [--max_range 35] --out FLOW.npy
+        [--sweep.objects.max_yaw_deg_per_s=100 ...]
     python -m jaxflow.predict PC1 PC2 --out FLOW.npy [--method optimise|network|nsfp]
         [--checkpoint PATH] [--config CONFIG] [--iters 32] [--max_points 8192 | --full
         [--corr_chunk 2048]] [--seed 0] [--steps N] [--objective exact|grid] [--render VIEW.png]
@@ -9,43 +10,45 @@ r"""Scene flow of your own point files (jaxflow-predict): the flow of every poin
 From Python: `jaxflow.inference.predict_flow(pc1_Nx3, pc2_Mx3, method=...)`, the same defaults.
 
 PC1 and PC2 are any file `jaxflow.data.read_points` reads (.npy, .ply, .pcd, KITTI .bin, .xyz/.txt),
-in metres, in the models' frame (x left, y up, z forward; jaxflow.frames), or with --up z (the
-default with --lidar) or x: then rotated into it and the flow back. The output is float32 N x 3 (.npy; --out FLOW.txt or FLOW.csv
-writes the same rows as text), one row per point of PC1, in file order: row i is the flow of the
-i-th point of PC1 that read_points keeps. read_points drops rows with a non-finite coordinate; when
-it does, the count is printed on stderr and those rows have no output row.
+in metres, in the models' frame (x left, y up, z forward; jaxflow.geometry.frames), or with --up z
+(the default with --lidar) or x: then rotated into it and the flow back. The output is float32 N x 3
+(.npy; --out FLOW.txt or FLOW.csv writes the same rows as text), one row per point of PC1, in file
+order: row i is the flow of the i-th point of PC1 that read_points keeps. read_points drops rows
+with a non-finite coordinate; when it does, the count is printed on stderr and those rows have no
+output row.
 
-Method (--method, jaxflow.methods, docs/methods.md): `optimise` (the default, also the Python API's)
-refines the network's flow against the whole clouds; `network` is the network alone (the paper's
-protocol, evaluate.py's default); `nsfp` is the NSFP baseline (no checkpoint; --objective exact or
-grid). --steps N caps the optimisation steps. An optimisation that did not converge says so on
-stderr.
+Method (--method, jaxflow.methods.registry, docs/methods.md): `optimise` (the default, also the
+Python API's) refines the network's flow against the whole clouds; `network` is the network alone
+(the paper's protocol, evaluate.py's default); `nsfp` is the NSFP baseline (no checkpoint;
+--objective exact or grid). --steps N caps the optimisation steps. An optimisation that did not
+converge says so on stderr.
 
 Cloud size (jaxflow.inference): clouds above --max_points (config.eval.num_points, 8192) are sampled
 and the flow mapped back to every PC1 point; --full (or --max_points 0) uses whole clouds, the
 correlation built --corr_chunk rows at a time. --seed seeds the sampling.
 
-Raw sweeps (--lidar, jaxflow.sweep): the ground if the sweep has one (local planes along --up: z,
-the LiDAR convention; y for a camera frame such as KITTI's), the sensor's ego-motion (GICP of the
+Raw sweeps (--lidar, jaxflow.lidar.sweep): the ground if the sweep has one (local planes along --up:
+z, the LiDAR convention; y for a camera frame such as KITTI's), the sensor's ego-motion (GICP of the
 two sweeps) and one rigid motion per moving object; every other point, ground and far points
 included, moves with the ego-motion. A note says what was found. The method runs on a camera's view
 (under half the azimuth: its non-ground points within --max_range, 35 m, the others getting the
 rigid motion of its static part) and, on a 360-degree sweep, only when --method is given: its flow
 is then one more start of the fits (slow; benchmarks/REAL_SWEEPS.md). Otherwise no checkpoint is
-loaded. --noground_limits skips the up-axis check.
+loaded. --noground_limits skips the up-axis check. --sweep.FIELD=V sets the pipeline's settings
+(jaxflow/configs/sweep.py; --print_config lists them with their units).
 
 Model. The checkpoint (default: the shipped jaxflow/checkpoints/jaxflow_synthetic/) carries its
 config: the model is built from it. --config (default configs/default.py:eval) only sets evaluation
 settings; a model field of an explicit --config file that contradicts the checkpoint is an error,
-except the runtime fields of jaxflow.model_fields (corr_chunk, infer_truncate_k, precision, ...),
-which stay the checkpoint's unless given as --config.model.FIELD=V (e.g.
---config.model.infer_truncate_k=64: faster with --full). A stage-2 checkpoint gives the refined flow,
-a stage-1 one the last iteration's.
+except the runtime fields of jaxflow.network.model_fields (corr_chunk, infer_truncate_k, precision,
+...), which stay the checkpoint's unless given as --config.model.FIELD=V (e.g.
+--config.model.infer_truncate_k=64: faster with --full). A stage-2 checkpoint gives the refined
+flow, a stage-1 one the last iteration's.
 
 Outputs: --out FILE; --save_flows DIR writes DIR/NAME.npy, NAME made from "PC1,PC2" as evaluate.py
---save_flows names its pairs (jaxflow.export); --render FILE.png a top view of this pair in its up
-axis, FILE.html a 3D viewer (jaxflow.viewer; evaluate.py's --render_dir DIR: pictures of every
-pair).
+--save_flows names its pairs (jaxflow.evaluation.export); --render FILE.png a top view of this pair
+in its up axis, FILE.html a 3D viewer (jaxflow.viz.viewer; evaluate.py's --render_dir DIR: pictures
+of every pair).
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
 than the model's neighbourhood config.model.knn) prints one line naming the file and the problem and
@@ -55,8 +58,12 @@ exits with code 2.
 import pathlib
 import sys
 
-from jaxflow import cli, export, ground, inference, submission
+from jaxflow import cli, inference
 from jaxflow.errors import ConfigError
+from jaxflow.evaluation import export, submission
+
+# --lidar's settings (jaxflow.lidar.sweep) when no --sweep file is given.
+SWEEP_CONFIG = str(pathlib.Path(__file__).absolute().parent / "configs" / "sweep.py")
 
 
 def _define_flags(default_method: str = inference.DEFAULT_METHOD):
@@ -66,6 +73,9 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   config_flags.DEFINE_config_file(
     "config", cli.EVAL_CONFIG, "Evaluation settings (config.eval.num_points, "
     "config.eval.num_iters); the model comes from the checkpoint.", lock_config=True)
+  config_flags.DEFINE_config_file(
+    "sweep", SWEEP_CONFIG, "--lidar: the sweep pipeline's settings (units in --print_config)",
+    lock_config=True)
   flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "
                       "shipped jaxflow/checkpoints/jaxflow_synthetic/).")
   flags.DEFINE_string("out", None, "Write the flow here, one row per point of PC1: .npy "
@@ -75,7 +85,7 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
                        "z intensity; 5: nuScenes' x y z intensity ring; 3: x y z).")
   flags.DEFINE_string("render", None, "Also draw the flow of this pair: FILE.png a top view in --up "
                       "(speed relative to the ego-motion), FILE.html a 3D viewer (extra 'viewer').")
-  flags.DEFINE_bool("lidar", False, "Raw sweeps (jaxflow.sweep): the ground (local planes along "
+  flags.DEFINE_bool("lidar", False, "Raw sweeps (jaxflow.lidar.sweep): the ground (local planes along "
                     "--up), the sensor's ego-motion (GICP) and one rigid motion per moving "
                     "object; the method runs on a camera's view (the points within --max_range "
                     "off the ground), on a sweep only when --method is given (a start).")
@@ -84,8 +94,8 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   flags.DEFINE_enum("up", None, ["x", "y", "z"], "The clouds' up axis (z: LiDAR; y: the models' "
                     "frame): rotated into the models' frame, the flow back. Default: z with "
                     "--lidar, else y.")
-  flags.DEFINE_float("max_range", ground.DEFAULT_MAX_RANGE, "--lidar: keep the points within this "
-                     "horizontal distance (m) of the sensor; 0: all.")
+  flags.DEFINE_float("max_range", None, "--lidar: keep the points within this horizontal distance "
+                     "(m) of the sensor (default --sweep.max_range, 35); 0: all.")
   flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
 
 
@@ -129,7 +139,7 @@ def main(argv):
     pc1, pc2, num_iters=num_iters, max_points=max_points, full=not max_points,
     corr_chunk=None, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=FLAGS.lidar,
     up=FLAGS.up, max_range=FLAGS.max_range, ground_limits=FLAGS.ground_limits,
-    use_network=use_method)
+    use_network=use_method, sweep_settings=FLAGS.sweep)
   up = prediction.up
   if prediction.sweep is not None:
     print(f"note: {prediction.sweep.note()}", file=sys.stderr)
@@ -151,9 +161,9 @@ def main(argv):
     if note not in warnings:
       print(f"note: {note}", file=sys.stderr)
   sweep_only = prediction.sweep is not None and prediction.sweep.ego.start != "flow_fn"
-  if sweep_only:  # a 360-degree sweep: jaxflow.sweep's fits, the method did not run
+  if sweep_only:  # a 360-degree sweep: jaxflow.lidar.sweep's fits, the method did not run
     how = (f"ground, ego-motion and {len(prediction.sweep.objects.moved)} moving objects "
-           "(jaxflow.sweep)" + (f"; method {FLAGS.method}'s flow a start"
+           "(jaxflow.lidar.sweep)" + (f"; method {FLAGS.method}'s flow a start"
                                  if prediction.sweep.used_network else "; no method run"))
   else:
     how = "ground and far points removed; " if FLAGS.lidar else ""
@@ -171,17 +181,17 @@ def main(argv):
   for warning in warnings:
     print(f"warning: {warning}", file=sys.stderr)
   if FLAGS.render:
-    from jaxflow import viewer  # pylint: disable=import-outside-toplevel  (matplotlib: only here)
+    from jaxflow.viz import viewer  # pylint: disable=import-outside-toplevel  (matplotlib: only here)
     viewer.render(FLAGS.render, pc1, pc2, flow_Nx3, up=up, sweep=prediction.sweep,
                   title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
-    what = "3D viewer (jaxflow.viewer)" if FLAGS.render.endswith(".html") else "top view"
+    what = "3D viewer (jaxflow.viz.viewer)" if FLAGS.render.endswith(".html") else "top view"
     print(f"{FLAGS.render}: {what} of the pair and its flow", file=sys.stderr)
 
 
 def run(default_method: str = inference.DEFAULT_METHOD, description: str | None = None):
   """The console script `jaxflow-predict` (`python -m jaxflow.nsfp`: default_method nsfp)."""
-  cli.run(main, lambda: _define_flags(default_method), {"config": cli.EVAL_CONFIG},
-          description=description)
+  cli.run(main, lambda: _define_flags(default_method),
+          {"config": cli.EVAL_CONFIG, "sweep": SWEEP_CONFIG}, description=description)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxflow.model import build_model
+from jaxflow.network.model import build_model
 
 
 def parameter_counts(model_config) -> dict:

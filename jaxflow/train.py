@@ -3,7 +3,7 @@ r"""Trains a jaxflow model and evaluates it (python -m jaxflow.train, jaxflow-tr
     python -m jaxflow.train --config configs/default.py --workdir runs/default [--config.FIELD=V]
     python -m jaxflow.train --config configs/default.py --print_config    # the fields, commented
 
-The run writes its checkpoints, metrics.jsonl and TensorBoard event files (jaxflow.events:
+The run writes its checkpoints, metrics.jsonl and TensorBoard event files (jaxflow.training.events:
 `tensorboard --logdir WORKDIR`) into WORKDIR. Rerunning the same command resumes from
 WORKDIR/checkpoints. SIGTERM/SIGINT save a checkpoint at
 the current step and exit with 128 + the signal number. `configs/NAME.py` is the package's config
@@ -46,7 +46,8 @@ def written(workdir) -> str:
 def main(argv):
   from absl import flags  # pylint: disable=import-outside-toplevel
   # Here, not at the top: --print_config and --help answer without loading jax.
-  from jaxflow import distributed, run_log, training  # pylint: disable=import-outside-toplevel
+  from jaxflow import distributed  # pylint: disable=import-outside-toplevel
+  from jaxflow.training import run_log, trainer
 
   if len(argv) > 1:
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
@@ -55,7 +56,7 @@ def main(argv):
   if not workdir:
     cli.fail("--workdir is required: the folder for the run's checkpoints, metrics and results")
   try:
-    training.train_and_evaluate(flags.FLAGS.config, workdir)
+    trainer.train_and_evaluate(flags.FLAGS.config, workdir)
   except run_log.Interrupted as e:
     print(e, file=sys.stderr)
     return 128 + e.signum

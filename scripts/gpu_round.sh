@@ -4,7 +4,7 @@
 # device tool's folder; runs/gpu_out when unset), packed so that it comes back (at most 8 files).
 #
 #   bash scripts/gpu_round.sh bench             # voxel_cells, custom_gradients, model_speed
-#   bash scripts/gpu_round.sh device            # issue 29's round, one call of < 10 minutes: the
+#   bash scripts/gpu_round.sh device            # the GPU round, one call of < 10 minutes: the
 #                                               # GPU-marked tests, model_speed at both precisions
 #                                               # and with --deterministic's flag, the methods
 #                                               # benchmark, device-vs-host nearest search

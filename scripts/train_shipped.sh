@@ -44,7 +44,7 @@ if [[ "${1:-}" == "eval" ]]; then
   $NICE "$PY" -c "
 import json, sys
 from jaxflow.data import open_dataset
-from jaxflow.evaluation import evaluate_zero_flow
+from jaxflow.evaluation.evaluator import evaluate_zero_flow
 out, points, sets = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
 for name, spec, split in zip(sets[::3], sets[1::3], sets[2::3]):
   r = evaluate_zero_flow(open_dataset(spec, split=split), num_points=points, batch_size=1)

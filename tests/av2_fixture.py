@@ -1,5 +1,5 @@
 """Tiny labelled Argoverse 2 logs in OpenSceneFlow's h5 layout, written from the documented layout
-(DESIGN.md section 7; OpenSceneFlow's dataprocess/extract_av2.py), never by jaxflow.
+(OpenSceneFlow's dataprocess/extract_av2.py; jaxflow.data.opensf states it), never by jaxflow.
 
 A scene is built in the ego frame of sweep 0 (x forward, y left, z up; ground at z = 0): ground,
 static structures, and objects of av2 categories, some moving. `flow` is where each point is at

@@ -50,9 +50,9 @@ def shared_dir():
 def smoke_checkpoint(tmp_path_factory):
   """A stage-1 checkpoint of the smoke model with random weights (for command paths whose numbers
   only have to agree with each other)."""
-  from jaxflow import checkpointing, train_state  # pylint: disable=import-outside-toplevel
+  from jaxflow.network import checkpointing, train_state  # pylint: disable=import-outside-toplevel
   from jaxflow.configs import default  # pylint: disable=import-outside-toplevel
-  from jaxflow.model import build_model  # pylint: disable=import-outside-toplevel
+  from jaxflow.network.model import build_model  # pylint: disable=import-outside-toplevel
 
   config = default.get_config("smoke")
   model = build_model(config.model)

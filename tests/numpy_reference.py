@@ -1,5 +1,5 @@
-"""Plain NumPy (loop) implementations of the network's operations, written from DESIGN.md
-independently of jaxflow's vectorised code, for the tests to compare against."""
+"""Plain NumPy (loop) implementations of the network's operations, written from the papers'
+definitions (docs/network.md) independently of jaxflow's vectorised code, for the tests to compare against."""
 
 import numpy as np
 

@@ -1,4 +1,4 @@
-"""jaxflow.av2_eval against the official code: the av2 package's own compute_metrics and
+"""jaxflow.evaluation.av2_eval against the official code: the av2 package's own compute_metrics and
 results_to_dict, bucketed-scene-flow-eval's own BucketedEPEEvaluator (both installed by .ci/run with
 --no-deps; the latter imports open3d and opencv at module level, which stand-ins replace), and a
 plain loop written from the bucketed definition: per frame and fine class the mean EPE and speed of
@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxflow import av2_eval
+from jaxflow.evaluation import av2_eval
 
 av2_eval_module = pytest.importorskip("av2.evaluation.scene_flow.eval",
                                       reason="the av2 package (.ci/run installs it)")

@@ -10,10 +10,11 @@ import pytest
 
 import numpy as np
 
-from jaxflow import checkpointing, cli, configfile, train
+from jaxflow import cli, configfile, train
 from jaxflow.configs import default
 from jaxflow.data import read_points
 from jaxflow.errors import CheckpointError
+from jaxflow.network import checkpointing
 
 REPO = Path(__file__).absolute().parent.parent
 

@@ -71,13 +71,17 @@ def test_second_run_compiles_nothing_and_a_broken_cache_costs_one_line(clouds, s
   rc, err, compiled, _ = _predict(clouds, smoke_checkpoint, cache, tmp_path / "f4.npy")
   assert rc == 0 and compiled == 0, err  # the broken entries were written again
 
-  blocked = tmp_path / "a_file"
+  blocked = tmp_path / "a_file"  # (the network method: a few programs compiled, not optimise's)
   blocked.write_text("not a folder")
-  rc, err, compiled, _ = _predict(clouds, smoke_checkpoint, blocked / "xla", tmp_path / "f5.npy")
+  network = ("--method", "network", "--iters", "2")
+  rc, err, _, _ = _predict(clouds, smoke_checkpoint, cache, tmp_path / "f5.npy", *network)
+  assert rc == 0, err
+  rc, err, compiled, _ = _predict(clouds, smoke_checkpoint, blocked / "xla", tmp_path / "f6.npy",
+                                  *network)
   assert rc == 0, err
   notes = [l for l in err if "compilation cache" in l]
   assert len(notes) == 1 and "cannot be written" in notes[0] and str(blocked) in notes[0], err
-  np.testing.assert_array_equal(np.load(tmp_path / "f5.npy"), first)
+  np.testing.assert_array_equal(np.load(tmp_path / "f6.npy"), np.load(tmp_path / "f5.npy"))
 
 
 CONFIG = ("jax_enable_compilation_cache", "jax_compilation_cache_dir",

@@ -11,7 +11,7 @@ import pytest
 
 from jaxflow.configs import ablation, default, ft3d_stage1, ft3d_stage2, kitti_eval, paper, pvraft
 from jaxflow.data.readers import ft3d_split_positions
-from jaxflow.model import build_model
+from jaxflow.network.model import build_model
 from jaxflow.summary import parameter_counts
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

@@ -1,7 +1,7 @@
 """opensf: OpenSceneFlow h5 logs, the three-way EPE, conversion, evaluate.py on them, --save_flows.
 
-The fixture is written here with h5py from the documented layout (DESIGN.md section 7), so the
-reader is checked against the construction, not against itself.
+The fixture is written here with h5py from the documented layout (OpenSceneFlow's converters), so
+the reader is checked against the construction, not against itself.
 """
 
 import json
@@ -14,10 +14,10 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxflow import evaluation, export
 from jaxflow.data import convert, eval_batches, open_dataset, opensf
 from jaxflow.errors import DataError
-from jaxflow.metrics import three_way_epe
+from jaxflow.evaluation import evaluator, export
+from jaxflow.evaluation.metrics import three_way_epe
 
 REPO = Path(__file__).absolute().parent.parent
 # log -> [(timestamp, labelled)]: numeric order differs from string order (9 < 10 < 11 < 100)
@@ -151,7 +151,7 @@ def test_three_way_epe_matches_a_loop_over_points():
 def test_evaluation_averages_three_way_over_pairs_leaving_out_empty_classes(opensf_dir):
   root, _ = opensf_dir
   ds = open_dataset(f"opensf:{root}", "val")
-  got = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=2)["three_way_local"]
+  got = evaluator.evaluate_zero_flow(ds, num_points=64, batch_size=2)["three_way_local"]
   per_pair = [three_way_epe(np.zeros_like(b["flow"][0]), b["flow"][0], b["rigid_flow"][0],
                             b["foreground"][0], b["mask"][0]) for b in eval_batches(ds, 1, 64)]
   assert np.isnan(per_pair[2]["fd"]) and not np.isnan(per_pair[0]["fd"])  # log_b: no mover
@@ -159,7 +159,7 @@ def test_evaluation_averages_three_way_over_pairs_leaving_out_empty_classes(open
   assert got["fd"] == pytest.approx((per_pair[0]["fd"] + per_pair[1]["fd"]) / 2, rel=1e-6)
   for k in ("fs", "bs", "mean"):
     assert got[k] == pytest.approx(np.mean([p[k] for p in per_pair]), rel=1e-6)
-  assert "three_way_local" not in evaluation.evaluate_zero_flow(
+  assert "three_way_local" not in evaluator.evaluate_zero_flow(
     open_dataset("synthetic_lidar:2", "test"), num_points=64, batch_size=1)
 
 
@@ -173,8 +173,8 @@ def test_conversion_keeps_the_ego_motion_and_labels(opensf_dir, tmp_path):
     for k in ("pc1", "pc2", "flow", "mask", "rigid_flow", "foreground", "name"):
       np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
   kwargs = dict(num_points=64, batch_size=1)
-  assert (evaluation.evaluate_zero_flow(converted, **kwargs)["three_way_local"]
-          == evaluation.evaluate_zero_flow(source, **kwargs)["three_way_local"])
+  assert (evaluator.evaluate_zero_flow(converted, **kwargs)["three_way_local"]
+          == evaluator.evaluate_zero_flow(source, **kwargs)["three_way_local"])
 
 
 @pytest.fixture(scope="module")

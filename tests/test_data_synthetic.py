@@ -11,7 +11,8 @@ from jaxflow.data import synthetic as S
 from jaxflow.data.readers import GROUND_Y
 
 
-# Independent definitions of each primitive: inside test and distance-like surface residual (local frame).
+# Independent definitions of each primitive: inside test and distance-like surface residual (local
+# frame).
 def _inside(kind, p, size):
   x, y, z = p
   if kind == S.BOX:
@@ -140,7 +141,8 @@ def test_flow_moves_pc1_onto_the_frame2_surfaces(kind):
     near_1cm.append(np.mean(dist < 0.004))
     near_none.append(np.mean(tree.query(pair.pc1)[0] / np.linalg.norm(pair.pc1, axis=1) < 0.004))
     spacing.append(np.median(spatial.cKDTree(target).query(pair.pc2)[0]))
-  # Most warped points lie on a frame-2 surface (the rest are occluded in frame 2); without the flow they do not.
+  # Most warped points lie on a frame-2 surface (the rest are occluded in frame 2); without the flow
+  # they do not.
   assert min(near_1cm) > 0.9 and max(near_none) < 0.35
   # pc2 samples the surfaces independently: its points are not the warped pc1 points.
   assert min(spacing) > 1e-3
@@ -162,7 +164,7 @@ def test_conventions_and_statistics(kind):
       assert not ((pair.pc1[:, 1] < GROUND_Y) & (warped[:, 1] < GROUND_Y)).any()
       assert pair.pc1[:, 1].min() < -1.0 and pair.pc1[:, 1].max() > 0.5  # y up: objects above the ground
   mean_flow = np.mean([np.linalg.norm(p.flow, axis=1).mean() for p in pairs])
-  assert 0.2 < mean_flow < 1.8  # DESIGN: mean |flow| from 0.2 to 1.8 m
+  assert 0.2 < mean_flow < 1.8  # the real FT3D samples' range of mean |flow|
 
 
 def test_ground_is_near_minus_1_6_before_removal():

@@ -16,10 +16,12 @@ import numpy as np
 import pytest
 
 from conftest import xla_flags
-from jaxflow import checkpointing, distributed, evaluation
+from jaxflow import distributed
 from jaxflow.configs import default
 from jaxflow.data import BatchLoader, eval_batches, open_dataset
 from jaxflow.errors import ConfigError
+from jaxflow.evaluation import evaluator
+from jaxflow.network import checkpointing
 
 REPO = Path(__file__).absolute().parent.parent
 STEPS, EVERY = 12, 4
@@ -125,7 +127,7 @@ def test_a_two_process_checkpoint_evaluates_in_one_process_and_in_two(runs, tmp_
   two, _, _ = runs
   config = default.get_config("smoke")
   config.eval.dataset = "synthetic_lidar:5"  # 3 batches of 2: process 0 takes two, process 1 one
-  one = evaluation.evaluate_checkpoint(two, config)
+  one = evaluator.evaluate_checkpoint(two, config)
   assert one["step"] == STEPS and one["pairs"] == 5
   wait_all(start_two(tmp_path / "eval", command=[
     "evaluate.py", "--config", "configs/default.py:smoke", "--checkpoint", str(two),
@@ -136,7 +138,7 @@ def test_a_two_process_checkpoint_evaluates_in_one_process_and_in_two(runs, tmp_
     assert both[k] == pytest.approx(one[k], rel=1e-5, abs=1e-7), k
   stored = json.loads((two / "eval.json").read_text())["model"]
   config.eval.dataset = "synthetic_lidar:4"  # the run's own held-out pairs
-  assert evaluation.evaluate_checkpoint(two, config)["epe"] == pytest.approx(stored["epe"], rel=1e-5)
+  assert evaluator.evaluate_checkpoint(two, config)["epe"] == pytest.approx(stored["epe"], rel=1e-5)
 
 
 @pytest.mark.slow

@@ -112,7 +112,7 @@ def _sweep(up: str, seed: int) -> np.ndarray:
 
 
 def _write_cloud(path: Path, points: np.ndarray):
-  from jaxflow import export  # pylint: disable=import-outside-toplevel
+  from jaxflow.evaluation import export  # pylint: disable=import-outside-toplevel
   if path.suffix == ".ply":
     export.write_ply(path, points)
   elif path.suffix == ".bin":
@@ -250,7 +250,8 @@ def test_network_doc_python_block_runs_as_written():
 def test_readme_python_block_recovers_the_motion_with_the_commands_default():
   """predict_flow's default is the command's (optimise): the README's scene moved by (0.2, 0, 0.5)
   gives that flow (the network alone gave (0.25, 0.09, 0.20))."""
-  from jaxflow import checkpointing, cli, inference  # pylint: disable=import-outside-toplevel
+  from jaxflow import cli, inference  # pylint: disable=import-outside-toplevel
+  from jaxflow.network import checkpointing
   if not checkpointing.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")
   assert inference.DEFAULT_METHOD == "optimise"
@@ -264,7 +265,7 @@ def test_readme_python_block_recovers_the_motion_with_the_commands_default():
 
 @pytest.mark.slow
 def test_users_doc_python_block_runs_on_toy_files(tmp_path, monkeypatch):
-  from jaxflow import checkpointing  # pylint: disable=import-outside-toplevel
+  from jaxflow.network import checkpointing  # pylint: disable=import-outside-toplevel
   if not checkpointing.SHIPPED_CHECKPOINT.exists():
     pytest.skip("no shipped checkpoint in this tree")
   for i in (1, 2):

@@ -1,10 +1,12 @@
-"""jaxflow.ego: the sensor's motion between two raw sweeps, against the generator's true motion."""
+"""jaxflow.lidar.ego: the sensor's motion between two raw sweeps, against the generator's true motion."""
 
 import numpy as np
 import pytest
 
-from jaxflow import ego, ground, rigid
+from jaxflow.configs import sweep as sweep_config
 from jaxflow.data import synthetic_sweep as ss
+from jaxflow.geometry import rigid
+from jaxflow.lidar import ego, ground
 
 
 def errors(motion, sweep):
@@ -60,7 +62,7 @@ def test_pc2_in_another_frame_is_warned_about(slow_sweep):
   c, sn = np.cos(np.radians(40)), np.sin(np.radians(40))
   turned = s.pc2 @ np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]).T + [30.0, -12.0, 0.0]
   result = ego.estimate(s.pc1, turned)
-  assert result.inlier_fraction < ego.PLAUSIBLE_INLIERS
+  assert result.inlier_fraction < sweep_config.get_config().ego.plausible_inliers
   assert "explains only" in result.note and "consecutive sweeps" in result.note
 
 
@@ -68,7 +70,7 @@ def test_traffic_beside_the_sensor_does_not_pull_the_ego_motion():
   """A dense city from Argoverse 2's ego frame where GICP alone lands 0.45 m off (pulled by the
   moving vehicles beside the sensor; the static residual knows better): refitted on its inliers."""
   s = ss.sweep_pair("test", 5, ss.Options(dense=True, origin_height=0.33, stacked=True))
-  untrimmed = ego.Registration(s.pc1, s.pc2).gicp(ego.motion_from(np.eye(3), np.zeros(3)))
+  untrimmed = ego.Registration(s.pc1, s.pc2).gicp(rigid.Motion.of(np.eye(3), np.zeros(3)))
   assert errors(untrimmed, s)[1] > 0.3  # the failure this guards against
   angle, shift = errors(ego.estimate(s.pc1, s.pc2).motion, s)
   assert angle < 0.05 and shift < 0.02, (angle, shift)

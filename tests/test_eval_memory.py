@@ -6,26 +6,26 @@ import tracemalloc
 
 import pytest
 
-from jaxflow import evaluation
 from jaxflow.configs import default
 from jaxflow.data import open_dataset
-from jaxflow.model import build_model
+from jaxflow.evaluation import evaluator
+from jaxflow.network.model import build_model
 
 POINTS = 4096
 BYTES_PER_PAIR = POINTS * (3 + 3 + 3 + 1) * 4  # float32 pc1, pc2, flow (N x 3) and mask (N)
 
 
-def evaluator(pairs: int) -> evaluation.Evaluator:
+def make_evaluator(pairs: int) -> evaluator.Evaluator:
   model = build_model(default.get_config("smoke").model, inference=True)
-  return evaluation.Evaluator(model, open_dataset(f"synthetic_lidar:{pairs}", split="test"),
-                              num_points=POINTS, batch_size=2, num_iters=1)
+  return evaluator.Evaluator(model, open_dataset(f"synthetic_lidar:{pairs}", split="test"),
+                             num_points=POINTS, batch_size=2, num_iters=1)
 
 
 def peak_bytes(pairs: int) -> tuple[int, dict]:
   """numpy registers its buffers with tracemalloc: the peak of making an Evaluator and calling it."""
   tracemalloc.start()
   try:
-    results = evaluator(pairs).zero_flow()
+    results = make_evaluator(pairs).zero_flow()
     return tracemalloc.get_traced_memory()[1], results
   finally:
     tracemalloc.stop()
@@ -42,9 +42,9 @@ def test_evaluator_memory_is_flat_in_the_number_of_pairs(capsys):
 
 
 def test_streamed_evaluator_gives_the_results_of_one_pass():
-  ev = evaluator(5)
+  ev = make_evaluator(5)
   ds = open_dataset("synthetic_lidar:5", split="test")
-  once = evaluation.evaluate_zero_flow(ds, num_points=POINTS, batch_size=2)
+  once = evaluator.evaluate_zero_flow(ds, num_points=POINTS, batch_size=2)
   for results in (ev.zero_flow(), ev.zero_flow()):  # re-sampled each call: the same pairs
     assert set(results) == set(once)
     for k in ("epe", "acc_strict", "acc_relax", "outliers", "angle", "pairs"):

@@ -1,4 +1,4 @@
-"""evaluate.py, jaxflow.evaluation and jaxflow.reporting: determinism, padding, the table, the
+"""evaluate.py, jaxflow.evaluation.evaluator and jaxflow.evaluation.reporting: determinism, padding, the table, the
 shared flags, bad checkpoints."""
 
 import json
@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import default
-from jaxflow import checkpointing, evaluation, reporting
-from jaxflow.model import build_model
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
-from jaxflow.metrics import METRICS
+from jaxflow.evaluation import evaluator, reporting
+from jaxflow.evaluation.metrics import METRICS
+from jaxflow.network import checkpointing
+from jaxflow.network.model import build_model
 
 REPO = Path(__file__).absolute().parent.parent
 from conftest import CACHE  # (the one compilation cache of this checkout)
@@ -58,8 +59,8 @@ def test_same_command_twice_gives_identical_numbers(workdir, tmp_path):
 
 def test_padding_pairs_are_excluded():
   ds = open_dataset("synthetic_lidar:5", split="test")
-  one = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=1)
-  three = evaluation.evaluate_zero_flow(ds, num_points=64, batch_size=3)  # 1 padding pair
+  one = evaluator.evaluate_zero_flow(ds, num_points=64, batch_size=1)
+  three = evaluator.evaluate_zero_flow(ds, num_points=64, batch_size=3)  # 1 padding pair
   assert one["pairs"] == three["pairs"] == 5
   for k in METRICS:
     np.testing.assert_allclose(one[k], three[k], rtol=1e-5)
@@ -70,7 +71,7 @@ def test_model_results_match_a_direct_computation(workdir):
   state, config, _ = checkpointing.restore_checkpoint(workdir)
   model = build_model(config.model)
   ds = open_dataset("synthetic_lidar:3", split="test")
-  got = evaluation.evaluate(model, state.params, ds, num_points=64, batch_size=2, num_iters=2)
+  got = evaluator.evaluate(model, state.params, ds, num_points=64, batch_size=2, num_iters=2)
   apply = jax.jit(lambda p, a, b: model.apply({"params": p}, a, b, num_iters=2, refine=False))
   epes = []
   for batch in eval_batches(ds, 1, 64, seed=0):  # the same seeded point samples, one at a time
@@ -86,7 +87,7 @@ def test_an_old_config_with_test_time_is_refused_naming_the_method(workdir):
   with config.unlocked():
     config.eval.test_time = {"steps": 15}
   with pytest.raises(ConfigError, match="config.eval.test_time was removed.*--method optimise"):
-    evaluation.evaluate_checkpoint(workdir, config, "synthetic_lidar:2", "test")
+    evaluator.evaluate_checkpoint(workdir, config, "synthetic_lidar:2", "test")
 
 
 @pytest.mark.slow
@@ -101,7 +102,7 @@ def test_shared_flags_mean_the_config_fields_and_outputs_go_where_asked(workdir,
   assert proc.returncode == 0, proc.stderr[-3000:]
   config = default.get_config("smoke")
   config.eval.num_iters, config.eval.num_points, config.eval.seed = 2, 48, 3
-  direct = evaluation.evaluate_checkpoint(workdir, config, "synthetic_lidar:3")
+  direct = evaluator.evaluate_checkpoint(workdir, config, "synthetic_lidar:3")
   got = json.loads(out.read_text())
   assert got["num_iters"] == 2 and got["num_points"] == 48
   np.testing.assert_allclose(got["epe"], direct["epe"], rtol=1e-6)
@@ -120,7 +121,7 @@ def test_infer_truncate_k_sets_the_candidates_when_evaluating_only(workdir):
   assert fewer.truncate_k == 4
   assert build_model(config.model).truncate_k == 16  # training keeps truncate_k
   ds = open_dataset("synthetic_lidar:2", split="test")
-  ev = lambda m: evaluation.evaluate(m, params, ds, num_points=64, batch_size=2, num_iters=2)
+  ev = lambda m: evaluator.evaluate(m, params, ds, num_points=64, batch_size=2, num_iters=2)
   reference = saved.model.copy_and_resolve_references()
   reference.truncate_k = 4  # the same network built with 4 candidates directly
   assert ev(fewer)["epe"] == ev(build_model(reference))["epe"] != ev(model)["epe"]
@@ -150,7 +151,7 @@ def test_cli_keeps_the_checkpoints_candidates_unless_given(workdir, tmp_path):
     reference = config.model.copy_and_resolve_references()
     reference.truncate_k = k
     state, _, _ = checkpointing.restore_checkpoint(run)
-    epes[k] = evaluation.evaluate(build_model(reference), state.params, ds,
+    epes[k] = evaluator.evaluate(build_model(reference), state.params, ds,
                                   num_points=config.eval.num_points, batch_size=config.eval.batch_size,
                                   num_iters=config.eval.num_iters)["epe"]
   assert epes[4] != epes[16]
@@ -197,7 +198,7 @@ def test_cli_silences_the_reports_of_abandoned_reads():
 @pytest.mark.filterwarnings("ignore:(?s).*Event loop is closed:pytest.PytestUnraisableExceptionWarning")
 def test_bad_checkpoints_raise_checkpoint_error_naming_path(workdir, tmp_path):
   config = default.get_config("smoke")
-  ev = lambda path, fields=(): evaluation.evaluate_checkpoint(
+  ev = lambda path, fields=(): evaluator.evaluate_checkpoint(
     path, config, "synthetic_lidar:2", "test", model_fields=fields)
   with pytest.raises(CheckpointError, match="no such"):
     ev(tmp_path / "missing")
@@ -232,7 +233,7 @@ def test_bad_checkpoints_raise_checkpoint_error_naming_path(workdir, tmp_path):
 def test_no_checkpoint_and_none_shipped_is_a_clear_error(monkeypatch, tmp_path):
   monkeypatch.setattr(checkpointing, "SHIPPED_CHECKPOINT", tmp_path / "jaxflow_synthetic")
   with pytest.raises(CheckpointError, match="no checkpoint given and no shipped checkpoint"):
-    evaluation.evaluate_checkpoint(None, default.get_config("eval"), "synthetic_lidar:2")
+    evaluator.evaluate_checkpoint(None, default.get_config("eval"), "synthetic_lidar:2")
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""jaxflow.frames: the frame of each reader and of the models, and the rotations between them.
+"""jaxflow.geometry.frames: the frame of each reader and of the models, and the rotations between them.
 
 Handedness: a scene turning left (counter-clockwise seen from above, a right-handed rotation about
 up) is written in each reader's stored layout from the published definition of that layout, read
@@ -12,8 +12,9 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxflow import frames, ground
 from jaxflow.data import open_dataset
+from jaxflow.geometry import frames
+from jaxflow.lidar import ground
 
 import zup_scene
 
@@ -164,8 +165,9 @@ def test_predict_up_z_hands_the_network_a_y_up_sweep(predictor, monkeypatch):
   from jaxflow import inference  # pylint: disable=import-outside-toplevel
 
   scene = zup_scene.sweep_pair(n_ground=3000, reach=40.0)  # 1 m forward, yaw +2 deg (left)
-  kept1 = ground.lidar_keep(scene.pc1, "z", 35.0)[0]  # the ground and range cut, in the sweep
-  kept2 = ground.lidar_keep(scene.pc2, "z", 35.0)[0]
+  # the ground and range cut, in the sweep
+  kept1 = ~ground.find_ground(scene.pc1, "z")[1] & ground.within_range(scene.pc1, "z", 35.0)
+  kept2 = ~ground.find_ground(scene.pc2, "z")[1] & ground.within_range(scene.pc2, "z", 35.0)
   pc1, pc2 = scene.pc1[kept1], scene.pc2[kept2]
   seen = []
   real = inference.Predictor._predict  # pylint: disable=protected-access
@@ -195,7 +197,7 @@ def test_predict_up_z_hands_the_network_a_y_up_sweep(predictor, monkeypatch):
 def test_evaluate_rotates_opensf_ego_clouds_for_the_model(tmp_path, predictor):
   """evaluate on opensf's ego frame (z up) gives the flow of its camera frame (the models'): the
   clouds are rotated before the network and the flow back (without it the network sees z up)."""
-  from jaxflow import evaluation  # pylint: disable=import-outside-toplevel
+  from jaxflow.evaluation import evaluator  # pylint: disable=import-outside-toplevel
 
   pc1, pc2 = opencv_scene(n=1500)
   pc2 = pc2 + [0.3, 0.0, 0.5]  # and a drift, so that the flow is not a rotation alone
@@ -204,7 +206,7 @@ def test_evaluate_rotates_opensf_ego_clouds_for_the_model(tmp_path, predictor):
   results = {}
   for frame in ("ego", "camera"):
     ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame},lidar=ego", "val")
-    results[frame] = evaluation.evaluate(predictor.model, predictor.params, ds, num_points=512,
+    results[frame] = evaluator.evaluate(predictor.model, predictor.params, ds, num_points=512,
                                          batch_size=1, num_iters=2)
   assert results["ego"]["epe"] == pytest.approx(results["camera"]["epe"], rel=1e-4)
   assert results["ego"]["angle"] == pytest.approx(results["camera"]["angle"], rel=1e-4)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from jaxflow import checkpointing
+from jaxflow.network import checkpointing
 from tests.conftest import SHARED
 
 REPO = Path(__file__).absolute().parent.parent

@@ -1,5 +1,5 @@
-"""Gradient semantics: the estimate entering each iteration carries no gradient (RAFT's detach,
-DESIGN section 1), and stage 2's gradient reaches the refinement only."""
+"""Gradient semantics: the estimate entering each iteration carries no gradient (RAFT's
+detach), and stage 2's gradient reaches the refinement only."""
 
 import jax
 import jax.numpy as jnp
@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from flax import traverse_util
 
-from jaxflow import losses, train_state, training
 from jaxflow.configs import default
-from jaxflow.model import build_model
+from jaxflow.network import train_state
+from jaxflow.network.model import build_model
+from jaxflow.training import losses, trainer
 
 
 def tiny_config():
@@ -87,7 +88,7 @@ def test_stage2_gradient_reaches_the_refinement_only():
   config.train.stage, config.train.num_iters = 2, 2
   tx = train_state.make_optimizer(config, 10)
   batch = {"pc1": pc1, "pc2": pc2, "flow": gt, "mask": jnp.ones(pc1.shape[:2])}
-  state, metrics = jax.jit(training.make_train_step(model, tx, config))(
+  state, metrics = jax.jit(trainer.make_train_step(model, tx, config))(
     train_state.create_train_state(params, tx), batch)
   want = np.sqrt(sum(float(jnp.sum(frozen[k] ** 2)) for k in refine))
   np.testing.assert_allclose(float(metrics["grad_norm"]), want, rtol=1e-4)

@@ -1,12 +1,16 @@
-"""jaxflow.ground and jaxflow.rigid: ground removal, range cut, rigid fits, against known truth."""
+"""jaxflow.lidar.ground and jaxflow.geometry.rigid: ground removal, range cut, rigid fits, against known truth."""
 
 import dataclasses
 
 import numpy as np
 import pytest
 
-from jaxflow import ground, rigid
+from jaxflow.configs import sweep as sweep_config
 from jaxflow.errors import ConfigError, DataError
+from jaxflow.geometry import rigid
+from jaxflow.lidar import ground
+
+MARGIN = sweep_config.get_config().ground.margin  # metres above the ground still ground
 
 
 def rotation(axis_3, degrees):
@@ -49,7 +53,7 @@ def test_ground_plane_and_removal_match_the_known_plane(up):
   assert np.degrees(np.arccos(plane.normal @ true_normal)) < 0.5
   assert abs(-plane.offset - offset) < 0.02
   removed = plane.ground(points)
-  truth = true_height < ground.GROUND_MARGIN  # the reference: the true plane and the margin
+  truth = true_height < MARGIN  # the reference: the true plane and the margin
   assert (removed != truth).mean() < 0.005
   assert not removed[-200:].any()  # the floating sign stays
 
@@ -109,11 +113,23 @@ def test_local_ground_follows_slopes_and_crowns_where_one_plane_cannot():
   on_ground = np.abs(true_height) < 0.05
   error = np.abs(surface.height(pts[on_ground]) - true_height[on_ground])
   assert np.percentile(error, 99) < 0.03 and error.max() < 0.1  # the crest and the crown's ridge
-  truth = true_height < ground.GROUND_MARGIN
+  truth = true_height < MARGIN
   assert (surface.ground(pts) != truth).mean() < 0.01
   plane = ground.fit_ground(pts, "z", None)
   assert (plane.ground(pts) != truth).mean() > 0.1  # one plane misses the climbing road
   assert surface.sensor_height == pytest.approx(1.9 - 0.15, abs=0.05)
+
+
+def test_find_ground_is_the_surface_from_the_near_plane_and_its_points():
+  pts, true_height = hilly_street()
+  surface, ground_N = ground.find_ground(pts, "z")
+  plane = ground.fit_ground(pts, "z", 20.0)  # the RANSAC plane near the sensor, then the cells
+  np.testing.assert_array_equal(surface.coef_HxWx3, ground.fit_surface(pts, "z", plane).coef_HxWx3)
+  np.testing.assert_array_equal(ground_N, surface.ground(pts))
+  assert (ground_N != (true_height < MARGIN)).mean() < 0.01
+  wall = np.random.default_rng(0).uniform(0, 10, (500, 3)) * [0, 1, 1] + [5, 0, 0]
+  with pytest.raises(DataError, match="wall.ply: no ground plane"):
+    ground.find_ground(wall, "z", "wall.ply")
 
 
 def test_a_wall_taken_for_the_ground_is_refused_with_the_way_out():

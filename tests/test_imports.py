@@ -1,5 +1,6 @@
-"""The package's imports go one way (no cycle, module-level or inside functions) and no module is
-over 400 lines (the synthetic scene generator excepted). Read with `ast`, nothing is imported."""
+"""The package's imports go one way (no cycle, module-level or inside functions; each layer of
+jaxflow/__init__.py imports only itself and the layers below) and no module is over 400 lines (the
+synthetic scene generator excepted). Read with `ast`, nothing is imported."""
 
 import ast
 from pathlib import Path
@@ -7,6 +8,21 @@ from pathlib import Path
 PACKAGE = Path(__file__).absolute().parent.parent / "jaxflow"
 MAX_LINES = 400
 LONG_ON_PURPOSE = {"jaxflow.data.synthetic"}  # the scene generator: one idea, many scenes
+# jaxflow's layers, lowest first: a unit (a subpackage, or a top-level module) may import its own
+# modules and the units of lower layers; units of one layer never import each other.
+LAYERS = (
+  ("jaxflow", "jaxflow.errors"),
+  ("jaxflow.configs", "jaxflow.configfile", "jaxflow.determinism", "jaxflow.compile_cache",
+   "jaxflow.distributed"),
+  ("jaxflow.geometry",),
+  ("jaxflow.data", "jaxflow.network"),
+  ("jaxflow.methods", "jaxflow.lidar", "jaxflow.viz"),
+  ("jaxflow.evaluation",),
+  ("jaxflow.training",),
+  ("jaxflow.cli", "jaxflow.inference"),
+  ("jaxflow.predict", "jaxflow.evaluate", "jaxflow.train", "jaxflow.summary", "jaxflow.import_pvraft"),
+  ("jaxflow.nsfp",),  # predict with another default
+)
 
 
 
@@ -73,6 +89,47 @@ def cycles(graph) -> list[list[str]]:
   return found
 
 
+def unit(module: str) -> str:
+  """The layer unit of a module: jaxflow.X for jaxflow.X.anything."""
+  return ".".join(module.split(".")[:2])
+
+
+def layer_violations(graph, layers=LAYERS) -> list[str]:
+  """"a -> b" for every import of a unit of the same or a higher layer than the importer's (and
+  "a: no layer" for a unit the layers do not name)."""
+  rank = {u: i for i, layer in enumerate(layers) for u in layer}
+  found = []
+  for a in sorted(graph):
+    if unit(a) not in rank:
+      found.append(f"{a}: no layer")
+      continue
+    for b in sorted(graph[a]):
+      if unit(b) != unit(a) and rank.get(unit(b), len(layers)) >= rank[unit(a)]:
+        found.append(f"{a} -> {b}")
+  return found
+
+
+def test_layer_check_finds_imports_up_and_across(tmp_path):
+  """The check itself: an import of a higher layer, one across a layer and an unnamed unit."""
+  pkg = tmp_path / "jaxflow"
+  for sub in ("geometry", "lidar", "methods"):
+    (pkg / sub).mkdir(parents=True)
+    (pkg / sub / "__init__.py").write_text("")
+  (pkg / "__init__.py").write_text("")
+  (pkg / "geometry" / "rigid.py").write_text("def f():\n  from jaxflow.lidar import ego\n")
+  (pkg / "lidar" / "ego.py").write_text("from jaxflow.geometry import rigid\nfrom jaxflow.methods import bodies\n")
+  (pkg / "methods" / "bodies.py").write_text("from jaxflow.geometry import rigid\n")
+  (pkg / "stray.py").write_text("")
+  layers = (("jaxflow",), ("jaxflow.geometry",), ("jaxflow.methods", "jaxflow.lidar"))
+  assert layer_violations(import_graph(pkg), layers) == [
+    "jaxflow.geometry.rigid -> jaxflow.lidar.ego", "jaxflow.lidar.ego -> jaxflow.methods.bodies",
+    "jaxflow.stray: no layer"]
+
+
+def test_imports_go_down_the_layers():
+  assert layer_violations(import_graph()) == []
+
+
 def test_cycle_finder_finds_cycles_through_function_level_imports(tmp_path):
   """The reader itself: a function-level import back up is a cycle; relative imports resolve."""
   pkg = tmp_path / "jaxflow"
@@ -90,7 +147,7 @@ def test_cycle_finder_finds_cycles_through_function_level_imports(tmp_path):
 
 def test_no_import_cycle():
   graph = import_graph()
-  assert "jaxflow.training" in graph and "jaxflow.data.registry" in graph
+  assert "jaxflow.training.trainer" in graph and "jaxflow.data.registry" in graph
   assert cycles(graph) == []
 
 

@@ -168,7 +168,7 @@ def test_fresh_install_runs_the_documented_commands(fresh):
     print(first, "mean flow", flow.mean(axis=0), "true", motion)
   ego, ground = inputs["sweep1.bin"][2:]
   shift = inputs["pc1.ply"][2]
-  # The ground moves with the sweep's true ego-motion (jaxflow.sweep's ICP).
+  # The ground moves with the sweep's true ego-motion (jaxflow.lidar.sweep's ICP).
   ground_flow = np.median(np.load(work / "sweeps" / "flow.npy")[ground], axis=0)
   np.testing.assert_allclose(ground_flow, ego, atol=0.02)
   # The clouds' command (predict's default method, optimise) recovers their translation.
@@ -224,8 +224,12 @@ def test_readme_states_the_commands_ci_runs():
   assert 'python -m pip install -q -e ".[dev]"' in ci and "\npython -m pytest -q\n" in ci
   commands = ['python3 -m pip install -e ".[dev]"',
               'python3 -m pip install --no-deps "av2==0.3.6" "bucketed-scene-flow-eval==2.0.25"',
+              "apt-get install -y chromium",
               "python3 -m pytest -q"]
-  assert "\n".join(f"    {c}" for c in commands) in readme  # the README's block, in CI's order
+  block = [line.split("  #")[0].rstrip() for line in readme.splitlines()]
+  start = block.index(f"    {commands[0]}")
+  assert block[start:start + len(commands)] == [f"    {c}" for c in commands]  # in CI's order
+  assert "apt-get install -y -q chromium" in ci  # (as root, where apt-get exists)
   for command in commands[1:2]:  # each evaluator CI installs, pinned as the README says
     for package in command.split()[-2:]:
       assert f"--no-deps {package}" in ci, package

@@ -1,10 +1,11 @@
-"""The one Kabsch (rigid_clusters.kabsch_rotation) recovers known motions: through rigid.kabsch
+"""The one Kabsch (rigid.kabsch_rotation) recovers known motions: through rigid.kabsch
 (NumPy, float64) and rigid_clusters.fit (jax, per cluster), against closed-form rotations."""
 
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflow import rigid, rigid_clusters
+from jaxflow.geometry import rigid
+from jaxflow.methods import rigid_clusters
 
 
 def rotation(axis, angle):
@@ -54,5 +55,5 @@ def test_fit_recovers_each_clusters_motion_with_the_same_kabsch():
   np.testing.assert_array_equal(r_got[1], np.eye(3))  # an empty slot: the identity
   # The NumPy and jax paths of the one implementation agree on the same covariances.
   cov = rng.normal(size=(5, 3, 3))
-  np.testing.assert_allclose(np.asarray(rigid_clusters.kabsch_rotation(jnp.asarray(cov))),
-                             rigid_clusters.kabsch_rotation(cov), atol=1e-5)
+  np.testing.assert_allclose(np.asarray(rigid.kabsch_rotation(jnp.asarray(cov))),
+                             rigid.kabsch_rotation(cov), atol=1e-5)

@@ -1,4 +1,4 @@
-"""jaxflow.optimiser / rigid / nsfp / methods: NSFP recovers a rigid motion, early stopping stops
+"""jaxflow.methods.optimiser / rigid / nsfp / methods: NSFP recovers a rigid motion, early stopping stops
 with the best-loss flow, the cluster fit against NumPy, degenerate clouds stay finite, and the
 methods through evaluate.py, jaxflow.predict and jaxflow.nsfp at toy size."""
 
@@ -12,7 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow import inference, methods, optimiser, rigid_clusters
+from jaxflow import inference
+from jaxflow.methods import registry, optimiser, rigid_clusters
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -29,7 +30,7 @@ def test_nsfp_recovers_a_rigid_motion():
   gt = pc1 @ _rotation(0.05).T + [0.3, -0.1, 0.2] - pc1
   pc2 = (pc1 + gt)[rng.permutation(128)]  # the same points moved, in another order
   chosen = inference.method_settings("nsfp", steps=600, objective="exact")
-  flow, info = methods.flow_fn("nsfp", chosen=chosen, with_info=True)(None, pc1[None], pc2[None])
+  flow, info = registry.flow_fn("nsfp", chosen=chosen, with_info=True)(None, pc1[None], pc2[None])
   flow, info = np.asarray(flow[0]), {k: np.asarray(v)[0] for k, v in info.items()}
   assert np.mean(np.linalg.norm(flow - gt, axis=1)) < 0.02  # zero flow is 0.37 m off
   assert info["finite"] and info["loss_best"] < 0.01 * info["loss_start"]
@@ -83,10 +84,10 @@ def test_clusters_and_their_rigid_motions():
                              _rotation(0.3), atol=1e-6)
 
 
-_TINY = methods.Optimise(
-  refine=dataclasses.replace(methods.Optimise().refine, steps=30, max_cells=2**15),
+_TINY = registry.Optimise(
+  descent=dataclasses.replace(registry.Optimise().descent, steps=30, max_cells=2**15),
   rigid_steps=20)
-_TINY_NSFP = dataclasses.replace(methods.NSFP, steps=20, max_cells=2**15, width=16, depth=2)
+_TINY_NSFP = dataclasses.replace(registry.NSFP, steps=20, max_cells=2**15, width=16, depth=2)
 _ZERO_NETWORK = lambda params, a, b: jnp.zeros_like(a)
 
 
@@ -107,7 +108,7 @@ def _degenerate_pairs():
   ("nsfp", _TINY_NSFP), ("nsfp", dataclasses.replace(_TINY_NSFP, objective="grid")),
   ("optimise", _TINY)])
 def test_degenerate_clouds_give_finite_flows(method, chosen):
-  fn = methods.flow_fn(method, _ZERO_NETWORK, chosen, with_info=True)
+  fn = registry.flow_fn(method, _ZERO_NETWORK, chosen, with_info=True)
   pc1, pc2 = _degenerate_pairs()
   flow, info = fn(None, pc1, pc2)
   assert np.isfinite(np.asarray(flow)).all() and np.asarray(info["finite"]).all()
@@ -130,11 +131,11 @@ def test_settings_reject_bad_values():
     optimiser.Settings(model="tree")
   with pytest.raises(ValueError, match="patience"):
     optimiser.Settings(patience=-1)
-  with pytest.raises(methods.ConfigError, match="--method"):
-    methods.settings("icp")
-  capped = methods.settings("optimise", steps=5)
-  assert capped.refine.steps == capped.polish.steps == capped.rigid_steps == 5
-  assert methods.settings("nsfp").model == "mlp" and methods.settings("network") is None
+  with pytest.raises(registry.ConfigError, match="--method"):
+    registry.settings("icp")
+  capped = registry.settings("optimise", steps=5)
+  assert capped.descent.steps == capped.polish.steps == capped.rigid_steps == 5
+  assert registry.settings("nsfp").model == "mlp" and registry.settings("network") is None
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +152,7 @@ def runs(tmp_path_factory):
   eval_args = ["evaluate.py", "--dataset", "synthetic_lidar:1", "--split", "val", *toy]
   cases = {
     "eval_nsfp": py + eval_args + ["--method", "nsfp", "--json", d / "nsfp.json"],  # (optimise:
-    # the same dispatch, jaxflow.methods, with the network of the predict case)
+    # the same dispatch, jaxflow.methods.registry, with the network of the predict case)
     "predict_optimise": py + ["-m", "jaxflow.predict", d / "pc1.npy", d / "pc2.npy", "--out",
                               d / "p_opt.npy", "--iters", "2", "--steps", "15"],
     "nsfp": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "pc2.npy", "--out", d / "n.npy",
@@ -203,7 +204,7 @@ def test_nsfp_command_errors_are_one_line(runs):
 
 @pytest.mark.parametrize("chosen", [
   dataclasses.replace(_TINY_NSFP, patience=3, min_delta=1.0),  # early stopping fires at once
-  dataclasses.replace(methods.Optimise().polish, steps=30),
+  dataclasses.replace(registry.Optimise().polish, steps=30),
   dataclasses.replace(_TINY_NSFP, objective="grid")])
 def test_the_loop_driven_from_python_gives_the_compiled_loop_result(chosen):
   """optimiser.optimise_host_loop (searches between compiled blocks, what the methods run) and

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import ablation, default, pvraft
-from jaxflow import losses
-from jaxflow.model import build_model
+from jaxflow.network.model import build_model
 from jaxflow.summary import parameter_counts
+from jaxflow.training import losses
 
 
 def small_config(**overrides):

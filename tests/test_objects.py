@@ -1,8 +1,9 @@
-"""jaxflow.objects: moving objects get their own rigid motion, static ones the ego-motion."""
+"""jaxflow.lidar.objects: moving objects get their own rigid motion, static ones the ego-motion."""
 
 import numpy as np
 
-from jaxflow import objects, rigid
+from jaxflow.geometry import rigid
+from jaxflow.lidar import objects
 
 
 def yaw(deg):

@@ -6,10 +6,13 @@ import numpy as np
 import pytest
 
 import numpy_reference as ref
-from jaxflow import geometry, layers, losses, metrics
-from jaxflow.correlation import PointVoxelCorrelation, truncated_correlation, voxel_means
-from jaxflow.layers import GCL, SetConv
-from jaxflow.update import GRUCell, SingleGateCell
+from jaxflow.evaluation import metrics
+from jaxflow.geometry import ops
+from jaxflow.network import layers
+from jaxflow.network.correlation import PointVoxelCorrelation, truncated_correlation, voxel_means
+from jaxflow.network.layers import GCL, SetConv
+from jaxflow.network.update import GRUCell, SingleGateCell
+from jaxflow.training import losses
 
 SEEDS = (0, 1, 2)
 
@@ -43,7 +46,7 @@ def numpy_params(variables):
 @pytest.mark.parametrize("seed", SEEDS)
 def test_knn_matches_loop(seed):
   pts = cloud(seed)
-  got = np.asarray(geometry.knn(jnp.asarray(pts)[None], jnp.asarray(pts)[None], 8))[0]
+  got = np.asarray(ops.knn(jnp.asarray(pts)[None], jnp.asarray(pts)[None], 8))[0]
   want = ref.knn(pts, 8)
   assert all(set(g) == set(w) for g, w in zip(got, want))
   assert np.all(got[:, 0] == np.arange(len(pts)))  # nearest is the point itself
@@ -52,7 +55,7 @@ def test_knn_matches_loop(seed):
 @pytest.mark.parametrize("chunk", [0, 7, 16])
 def test_knn_chunked_equals_whole(chunk):
   pts = jnp.asarray(cloud(3, n=50))[None]
-  np.testing.assert_array_equal(geometry.knn(pts, pts, 6, chunk), geometry.knn(pts, pts, 6))
+  np.testing.assert_array_equal(ops.knn(pts, pts, 6, chunk), ops.knn(pts, pts, 6))
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -90,8 +93,8 @@ def test_gcl_neighbour_max_gradient_equals_autodiff_of_the_max(seed, similarity)
   # makes ties at 0 in the product form, where both give a zero gradient.
   rng = np.random.default_rng(seed)
   xyz = jnp.asarray(cloud(seed, n=32))[None]
-  nbr = geometry.knn(xyz, xyz, 6)
-  unit_v = layers.safe_normalize(geometry.gather(xyz, nbr) - xyz[:, :, None, :])
+  nbr = ops.knn(xyz, xyz, 6)
+  unit_v = layers.safe_normalize(ops.gather(xyz, nbr) - xyz[:, :, None, :])
   support = jnp.asarray(rng.normal(size=(1, 32, 12)), jnp.float32)
   unit_e = layers.safe_normalize(jnp.asarray(rng.normal(size=(12, 3)), jnp.float32)).T
   weights = jnp.asarray(rng.normal(size=(1, 32, 12)), jnp.float32)

@@ -1,6 +1,6 @@
 """model.precision reaches every matmul of the network, its gradient and its kNN; every program a
-method of jaxflow.methods compiles has every matmul at its configured precision and no host
-callback; the table of model fields (jaxflow.model_fields) covers the model and gives old
+method of jaxflow.methods.registry compiles has every matmul at its configured precision and no host
+callback; the table of model fields (jaxflow.network.model_fields) covers the model and gives old
 checkpoints the defaults."""
 
 import dataclasses
@@ -11,9 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow import checkpointing, losses, methods, model_fields
 from jaxflow.configs import default
-from jaxflow.model import SceneFlowNet, build_model
+from jaxflow.methods import registry
+from jaxflow.network import checkpointing, model_fields
+from jaxflow.network.model import SceneFlowNet, build_model
+from jaxflow.training import losses
 
 DOT = re.compile(r"stablehlo\.(dot_general|dot|convolution)\b")
 PRECISION = re.compile(r"precision = \[(\w+), (\w+)\]")
@@ -72,12 +74,12 @@ def test_every_dot_of_the_training_gradient_carries_the_precision(precision, wan
 
 def test_precision_reaches_the_knn_and_the_correlation():
   """The kNN distance matmul and the all-pairs correlation alone (no network dots) follow it."""
-  from jaxflow import geometry
-  from jaxflow.correlation import truncated_correlation
+  from jaxflow.geometry import ops
+  from jaxflow.network.correlation import truncated_correlation
   pc1, pc2 = pair()
   for precision, want in (("highest", "HIGHEST"), ("tensorfloat32", "HIGH"),
                           ("bfloat16", "DEFAULT")):
-    knn = jax.jit(lambda a: geometry.knn(a, a, 8, precision=precision)).lower(pc1).as_text()
+    knn = jax.jit(lambda a: ops.knn(a, a, 8, precision=precision)).lower(pc1).as_text()
     corr = jax.jit(lambda a, b: truncated_correlation(a, b, b, 8, precision=precision))
     for text in (knn, corr.lower(pc1, pc2).as_text()):
       assert dot_precisions(text) == [f"{want},{want}"]
@@ -141,7 +143,7 @@ def test_voxel_cells_setting_reaches_the_model_and_is_decided_per_platform():
     build_model(tiny_model_config(voxel_cells="loop")).init(jax.random.key(0), pc1, pc2)
 
 
-# Every method of jaxflow.methods (a method added later is covered without a change here).
+# Every method of jaxflow.methods.registry (a method added later is covered without a change here).
 
 
 def configured(chosen, **fields):
@@ -162,24 +164,25 @@ def configured(chosen, **fields):
 def lowered_by_method(tmp_path, method, precision=None, **fields):
   """The text of every program `method` lowers when it runs on a toy pair (jax_dump_ir_to), the
   network at `precision` (None: defaults). The methods are driven from Python between compiled
-  stages (jaxflow.methods.flow_fn): what they compile is what they lowered."""
+  stages (jaxflow.methods.registry.flow_fn): what they compile is what they lowered."""
   pc1, pc2 = pair(n=64)
   model = build_model(tiny_model_config(**({} if precision is None else {"precision": precision})))
   init = lambda: model.init(jax.random.key(0), pc1, pc2, num_iters=1)["params"]
-  params = jax.eval_shape(init) if method == "network" else init()
+  # The network runs only in optimise (its start); eager init is slow: traced once, compiled.
+  params = jax.jit(init)() if method == "optimise" else jax.eval_shape(init)
   network = lambda p, a, b: model.apply({"params": p}, a, b, num_iters=2)["flows"][:, -1]
-  chosen = methods.settings(method, steps=20)
+  chosen = registry.settings(method, steps=20)
   if precision is not None:
     fields["precision"] = precision
   chosen = configured(chosen, **fields)
   if method == "network":  # one jitted program: lowered, not run
-    return [methods.flow_fn(method, network, chosen).lower(params, pc1, pc2).as_text()]
+    return [registry.flow_fn(method, network, chosen).lower(params, pc1, pc2).as_text()]
   folder = tmp_path / f"{method}-{precision}-{len(fields)}"
   jax.clear_caches()  # every stage lowered again, in this folder
   before = jax.config.read("jax_dump_ir_to")
   jax.config.update("jax_dump_ir_to", str(folder))
   try:
-    jax.block_until_ready(methods.flow_fn(method, network, chosen)(params, pc1, pc2))
+    jax.block_until_ready(registry.flow_fn(method, network, chosen)(params, pc1, pc2))
   finally:
     jax.config.update("jax_dump_ir_to", before)
   texts = [f.read_text() for f in sorted(folder.glob("*.mlir"))]
@@ -192,7 +195,7 @@ def callbacks(text: str) -> list[str]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", methods.METHODS)
+@pytest.mark.parametrize("method", registry.METHODS)
 def test_every_program_of_a_method_carries_the_precision_and_no_callback(method, tmp_path):
   """Every program a method compiles (the network, NSFP's MLPs and their gradients, the optimise
   stages' Kabsch, Rodrigues and rigid flows) states HIGHEST on every dot by default and the
@@ -212,14 +215,14 @@ def test_every_program_of_a_method_carries_the_precision_and_no_callback(method,
 
 def test_the_callback_check_can_fail():
   """The jitted optimiser with its searches inside does call back to the host on the CPU."""
-  from jaxflow import optimiser  # pylint: disable=import-outside-toplevel
+  from jaxflow.methods import optimiser  # pylint: disable=import-outside-toplevel
   pc1, pc2 = pair(n=64)
   assert callbacks(optimiser.optimise.lower(jnp.zeros_like(pc1), pc1, pc2,
                                             optimiser.NSFP).as_text())
 
 
 def test_a_bad_precision_or_search_is_refused():
-  from jaxflow import optimiser, rigid_clusters
+  from jaxflow.methods import optimiser, rigid_clusters
   with pytest.raises(ValueError, match="optimiser precision must be one of highest"):
     optimiser.Settings(precision="fp16")
   with pytest.raises(ValueError, match="optimiser search must be one of auto, host, device"):

@@ -9,12 +9,14 @@ import jax
 import numpy as np
 import pytest
 
+from jaxflow import inference
 from jaxflow.configs import default
-from jaxflow import checkpointing, export, inference, train_state
 from jaxflow.data import open_dataset, read_points
-from jaxflow.errors import DataError
 from jaxflow.data.sampling import sample_pair
-from jaxflow.model import build_model
+from jaxflow.errors import DataError
+from jaxflow.evaluation import export
+from jaxflow.network import checkpointing, train_state
+from jaxflow.network.model import build_model
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 N1, N2 = 150, 140  # points of the test pair (the smoke model's knn is 8)
@@ -95,7 +97,7 @@ def _cli(*args):
 
 @pytest.fixture(scope="module")
 def predictor(workdir):
-  return inference.load_predictor(workdir)
+  return inference.load_predictor(workdir, method="network")
 
 
 @pytest.fixture(scope="module")
@@ -195,7 +197,8 @@ def test_cli_sets_the_test_time_candidates(runs, files, predictor, pair):
   assert rc == 0, stderr
   config = predictor.config.copy_and_resolve_references()
   config.model.truncate_k = 4  # the smoke checkpoint keeps 16; a model built with 4 directly
-  four = inference.Predictor(build_model(config.model), predictor.params, config, refine=True)
+  four = inference.Predictor(build_model(config.model), predictor.params, config, refine=True,
+                             method="network")
   flow = np.load(files / "flow_k4.npy")
   np.testing.assert_allclose(flow, four(pair[0], pair[1], num_iters=4), atol=1e-4)
   assert not np.allclose(flow, np.load(files / "flow_npy.npy"), atol=1e-3)
@@ -235,7 +238,7 @@ def test_optimise_refines_every_point_of_a_sampled_cloud(workdir, files):
   move = np.float32([0.3, 0.0, -0.2])
   optimiser = inference.load_predictor(workdir, method="optimise", steps=40)
   flow = optimiser(big, big + move, num_iters=4, max_points=N1, seed=3)  # the network sees N1
-  network = inference.load_predictor(workdir)(big, big + move, num_iters=4, max_points=N1, seed=3)
+  network = inference.load_predictor(workdir, method="network")(big, big + move, num_iters=4, max_points=N1, seed=3)
   assert flow.shape == (2 * N1, 3) and np.isfinite(flow).all()
   # Not the sampled points' flows copied (as for the network): every point was optimised.
   assert len(np.unique(network, axis=0)) <= N1 < len(np.unique(flow, axis=0))
@@ -267,7 +270,7 @@ def test_default_checkpoint_is_the_shipped_one(pair):
   flow = inference.predict_flow(pc1, pc2, method="network", num_iters=2)
   shipped = inference.load_predictor(checkpointing.SHIPPED_CHECKPOINT, method="network")
   np.testing.assert_array_equal(flow, shipped(pc1, pc2, num_iters=2))
-  untrained = inference.fresh_predictor(shipped.config)(pc1, pc2, num_iters=2)
+  untrained = inference.fresh_predictor(shipped.config, method="network")(pc1, pc2, num_iters=2)
   assert np.abs(flow - untrained).max() > 1e-3
 
 

@@ -8,10 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxflow import inference
 from jaxflow.configs import pvraft
-from jaxflow import geometry, inference
+from jaxflow.geometry import ops
 from jaxflow.import_pvraft import convert_state_dict, import_into
-from jaxflow.model import build_model
+from jaxflow.network.model import build_model
 
 # --- Fidelity to the official PV-RAFT network --------------------------------------------------
 # tests/data/pvraft_seed5_n2048_it12.npz holds the official PV-RAFT network's outputs for seeded
@@ -64,7 +65,7 @@ def test_exact_knn_differs_from_the_official_graphs_on_a_few_rows_only(pvraft_re
   a handful of the 2048 rows (README: 1-3, where float32 rounding exceeds the 32nd/33rd gap)."""
   for cloud, nbr in (("pc1", "nbr1"), ("pc2", "nbr2")):
     points = jnp.asarray(pvraft_reference[cloud])
-    ours = np.sort(np.asarray(geometry.knn(points, points, 32))[0], axis=-1)
+    ours = np.sort(np.asarray(ops.knn(points, points, 32))[0], axis=-1)
     theirs = np.sort(pvraft_reference[nbr][0], axis=-1)
     differing = int(np.sum(np.any(ours != theirs, axis=-1)))
     assert differing <= 5, (cloud, differing)
@@ -82,7 +83,7 @@ def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_referen
   import sys
 
   from conftest import ROOT
-  from jaxflow import checkpointing
+  from jaxflow.network import checkpointing
   source = tmp_path / "weights.npz"
   np.savez(source, **{k: v for k, v in pvraft_reference.items() if "/" in k})
   out = tmp_path / "imported"
@@ -102,7 +103,7 @@ def test_import_cli_writes_a_checkpoint_that_restores_the_weights(pvraft_referen
   # difference (our exact kNN, not the official graphs), far from the official coarse flow (the
   # refinement of these random weights moves points by a median 0.57 m).
   ref = pvraft_reference
-  predictor = inference.load_predictor(out)
+  predictor = inference.load_predictor(out, method="network")
   assert predictor.refine
   flow = inference.predict_flow(ref["pc1"][0], ref["pc2"][0], num_iters=ref["flows"].shape[1],
                                 predictor=predictor)
@@ -118,7 +119,7 @@ def test_import_without_refinement_predicts_the_coarse_flow(pvraft_reference, tm
   np.savez(source, **{k: v for k, v in pvraft_reference.items() if k.startswith("rsf/")})
   import_pvraft.main([str(source), "--out", str(tmp_path / "imported")])
   # A stage-1 checkpoint of the network without refinement: predict and evaluate.py return the
-  # last iteration's flow (evaluation.model_predict_fn), the only one such a model has.
-  predictor = inference.load_predictor(tmp_path / "imported")
+  # last iteration's flow (methods.registry.model_predict_fn), the only one such a model has.
+  predictor = inference.load_predictor(tmp_path / "imported", method="network")
   assert not predictor.refine and predictor.config.train.stage == 1
   assert predictor.config.model.refine == "none" and predictor.model.refine == "none"

@@ -1,4 +1,4 @@
-"""`--lidar` (jaxflow.sweep) on the real sweeps of ../shared/data/real_sweeps (skipped without it):
+"""`--lidar` (jaxflow.lidar.sweep) on the real sweeps of ../shared/data/real_sweeps (skipped without it):
 two Argoverse 2 pairs whose ground was removed upstream, one with per-point flow labels, and KITTI's
 raw Velodyne scan; the bad input of a real sweep (swapped, rows dropped, 500 points, wrong --up)."""
 
@@ -7,7 +7,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from conftest import SHARED
-from jaxflow import ego, sweep
+from jaxflow.geometry import rigid
+from jaxflow.lidar import ego, sweep
 
 YAW = np.radians(2.0)
 R = np.array([[np.cos(YAW), -np.sin(YAW), 0], [np.sin(YAW), np.cos(YAW), 0], [0, 0, 1]])
@@ -56,7 +57,7 @@ def test_the_labelled_pair_is_scored_the_av2_way(labelled):
   # error: the geometry puts it ~2 cm from the labels' identity whatever the registration.
   assert three_way <= 0.05 and epe["bs"] <= 0.03 and epe["fd"] <= 0.1, epe
   assert three_way < 0.1 * zero
-  t, angle = motion_error(info.motion, ego.motion_from(R, T))
+  t, angle = motion_error(info.motion, rigid.Motion.of(R, T))
   assert t < 0.04 and angle < 0.1, (t, angle)
 
 
@@ -64,7 +65,7 @@ def test_the_sweeps_swapped_give_the_inverse_motion(labelled):
   raw1, pc2, _, _ = labelled
   forward = ego.estimate(raw1, pc2).motion
   backward = ego.estimate(pc2, raw1).motion
-  inverse = ego.motion_from(backward.rotation.T, -backward.rotation.T @ backward.translation)
+  inverse = backward.inverse()
   t, angle = motion_error(forward, inverse)
   assert t < 0.01 and angle < 0.05, (t, angle)  # measured 1.3 mm, 0.024 deg
 

@@ -14,8 +14,9 @@ import jax
 import numpy as np
 import pytest
 
-from jaxflow import checkpointing, training
 from jaxflow.errors import CheckpointError
+from jaxflow.network import checkpointing
+from jaxflow.training import trainer
 
 REPO = Path(__file__).absolute().parent.parent
 from conftest import CACHE  # (the one compilation cache of this checkout)
@@ -153,7 +154,7 @@ def test_resume_with_another_recipe_is_refused_unless_asked(uninterrupted_dir, t
   before = (workdir / "config.json").read_bytes()
   other = smoke_config(data__dataset="synthetic_lidar:16", train__lr=2e-3, train__log_every=3)
   with pytest.raises(ConfigError) as e:
-    training.train_and_evaluate(other, workdir)
+    trainer.train_and_evaluate(other, workdir)
   message = str(e.value)
   assert "\n" not in message and "resume_with_new_recipe" in message
   assert "data.dataset: 'synthetic_lidar:32' != 'synthetic_lidar:16'" in message
@@ -162,7 +163,7 @@ def test_resume_with_another_recipe_is_refused_unless_asked(uninterrupted_dir, t
   # Asked explicitly, and run longer: the change is recorded beside the new checkpoint.
   extended = TOTAL_STEPS + 2
   asked = smoke_config(train__lr=2e-3, train__num_steps=extended, train__resume_with_new_recipe=True)
-  training.train_and_evaluate(asked, workdir)
+  trainer.train_and_evaluate(asked, workdir)
   written = json.loads((workdir / "config.json").read_text())
   _, stored, step = checkpointing.restore_checkpoint(workdir)
   assert step == extended and written["train"]["lr"] == stored.train.lr == 2e-3

@@ -5,9 +5,9 @@ import json
 
 import pytest
 
-from jaxflow import checkpointing
 from jaxflow.configs import shipped
-from jaxflow.model_fields import ADDED_MODEL_FIELDS
+from jaxflow.network import checkpointing
+from jaxflow.network.model_fields import ADDED_MODEL_FIELDS
 
 SECTIONS = ("seed", "model", "data", "train")  # what made the parameters
 # Fields added after the checkpoint was written, with the value that reproduces how it ran.

@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import av2_fixture
-from jaxflow import export, submission
 from jaxflow.data import open_dataset
 from jaxflow.errors import ConfigError
+from jaxflow.evaluation import export, submission
 
 pd = pytest.importorskip("pandas")
 pytest.importorskip("pyarrow")

@@ -1,11 +1,13 @@
-"""jaxflow.sweep: the flow of raw sweep pairs, against the generator's truth; bad input."""
+"""jaxflow.lidar.sweep: the flow of raw sweep pairs, against the generator's truth; bad input."""
 
 import numpy as np
 import pytest
 
-from jaxflow import inference, metrics, sweep
+from jaxflow import inference
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.errors import CheckpointError, DataError
+from jaxflow.evaluation import metrics
+from jaxflow.lidar import sweep
 
 SMALL = ss.Options(scale=0.3)  # ~30k points a sweep: seconds
 

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from jaxflow import rigid
 from jaxflow.data import open_dataset
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.errors import DataError
+from jaxflow.geometry import rigid
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +83,7 @@ def test_registered_as_a_dataset_with_three_way_labels():
 def test_the_dataset_says_it_is_z_up_and_carries_the_av2_labels():
   """evaluate.py rotates synthetic_sweep's z-up clouds into the models' frame (frames.dataset_up)
   and reports the official breakdown from its categories (the sensor's x, y as the ego's)."""
-  from jaxflow import frames  # pylint: disable=import-outside-toplevel
+  from jaxflow.geometry import frames  # pylint: disable=import-outside-toplevel
 
   ds = open_dataset("synthetic_sweep:1", "test")
   assert frames.dataset_up(ds) == "z"

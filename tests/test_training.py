@@ -15,10 +15,12 @@ from flax import traverse_util
 
 from conftest import CACHE, xla_flags
 from jaxflow.configs import default, stage2_synthetic
-from jaxflow import checkpointing, evaluation, events, train_state, training
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError, DataError, NonFiniteError
-from jaxflow.model import build_model
+from jaxflow.evaluation import evaluator
+from jaxflow.network import checkpointing, train_state
+from jaxflow.network.model import build_model
+from jaxflow.training import events, trainer
 
 STEPS = 24  # the last step of configs/default.py:smoke
 
@@ -45,7 +47,7 @@ def flat(params):
 @pytest.fixture(scope="module")
 def stage1(tmp_path_factory):
   workdir = tmp_path_factory.mktemp("stage1")
-  state = training.train_and_evaluate(smoke({"eval.every": 12}), workdir)
+  state = trainer.train_and_evaluate(smoke({"eval.every": 12}), workdir)
   return workdir, state
 
 
@@ -53,14 +55,14 @@ def test_one_train_step():
   config = smoke()
   model = build_model(config.model)
   tx = train_state.make_optimizer(config, config.train.num_steps)
-  mesh = training.make_mesh()
+  mesh = trainer.make_mesh()
   state = train_state.create_train_state(
     train_state.init_params(model, config, jax.random.key(0)), tx)
   before = flat(state.params)
   loader = BatchLoader(open_dataset(config.data.dataset), config.train.batch_size,
                        config.data.num_points, seed=0)
-  step = training.jit_train_step(model, tx, config, mesh)
-  state, metrics = step(state, training.device_batch(loader.batch(0), mesh))
+  step = trainer.jit_train_step(model, tx, config, mesh)
+  state, metrics = step(state, trainer.device_batch(loader.batch(0), mesh))
   metrics = jax.device_get(metrics)
   assert set(metrics) == {"loss", "grad_norm", "param_norm"}
   assert all(np.isfinite(v) and v > 0 for v in metrics.values())
@@ -105,7 +107,7 @@ def test_heldout_evaluation_during_training_matches_evaluating_the_checkpoint(st
   model = build_model(config.model)
   for record in records:  # the checkpoints of those steps, evaluated afresh on the same pairs
     state, _, _ = checkpointing.restore_checkpoint(workdir, step=record["step"])
-    fresh = evaluation.evaluate(model, state.params, ds, num_points=config.eval.num_points,
+    fresh = evaluator.evaluate(model, state.params, ds, num_points=config.eval.num_points,
                                 batch_size=config.eval.batch_size, num_iters=config.eval.num_iters)
     assert record["pairs"] == fresh["pairs"] == 4
     for k in ("epe", "acc_strict", "acc_relax", "outliers", "angle"):
@@ -123,8 +125,8 @@ def test_heldout_evaluation_keeps_the_test_time_candidates(stage1):
   ds = open_dataset(config.eval.dataset, split=config.eval.split)
   settings = dict(num_points=config.eval.num_points, batch_size=config.eval.batch_size,
                   num_iters=config.eval.num_iters)
-  heldout = training.evaluate_run(state.params, config)["model"]
-  four, sixteen = (evaluation.evaluate(build_model(smoke({"model.truncate_k": k}).model),
+  heldout = trainer.evaluate_run(state.params, config)["model"]
+  four, sixteen = (evaluator.evaluate(build_model(smoke({"model.truncate_k": k}).model),
                                        state.params, ds, **settings) for k in (4, 16))
   assert four["epe"] != sixteen["epe"]
   for k in ("epe", "acc_strict", "acc_relax", "outliers", "angle"):
@@ -135,25 +137,25 @@ def test_evaluator_reuses_results_only_for_the_same_parameter_arrays(stage1):
   workdir, state = stage1
   config = smoke()
   ds = open_dataset(config.eval.dataset, split=config.eval.split)
-  evaluator = evaluation.Evaluator(build_model(config.model), ds, num_points=config.eval.num_points,
-                                   batch_size=config.eval.batch_size, num_iters=config.eval.num_iters)
-  first = evaluator(state.params)
-  assert evaluator(state.params) == first
+  evaluate_params = evaluator.Evaluator(build_model(config.model), ds, num_points=config.eval.num_points,
+                                         batch_size=config.eval.batch_size, num_iters=config.eval.num_iters)
+  first = evaluate_params(state.params)
+  assert evaluate_params(state.params) == first
   scaled = jax.tree.map(lambda x: x * 0.5, state.params)  # new arrays: evaluated afresh
-  assert evaluator(scaled)["epe"] != first["epe"]
+  assert evaluate_params(scaled)["epe"] != first["epe"]
   restored, _, _ = checkpointing.restore_checkpoint(workdir)  # equal values, other arrays
-  again = evaluator(restored.params)
+  again = evaluate_params(restored.params)
   assert again["epe"] == first["epe"] and again is not first
   # Zero flow on the kept pairs is the baseline evaluate_zero_flow samples afresh.
-  fresh = evaluation.evaluate_zero_flow(ds, num_points=config.eval.num_points,
+  fresh = evaluator.evaluate_zero_flow(ds, num_points=config.eval.num_points,
                                         batch_size=config.eval.batch_size)
-  assert evaluator.zero_flow()["epe"] == fresh["epe"] > 0
+  assert evaluate_params.zero_flow()["epe"] == fresh["epe"] > 0
 
 
 def test_heldout_evaluation_needs_a_dataset(tmp_path):
   for overrides in ({"eval.every": 5, "eval.dataset": ""}, {"eval.every": -1}):
     with pytest.raises(ConfigError, match="config.eval.every"):
-      training.train_and_evaluate(smoke(overrides), tmp_path)
+      trainer.train_and_evaluate(smoke(overrides), tmp_path)
   assert not (tmp_path / "checkpoints").exists()
 
 
@@ -161,7 +163,7 @@ def test_stage2_freezes_backbone_bitwise_and_trains_refinement(stage1, tmp_path)
   stage1_dir, stage1_state = stage1
   config = smoke({"train.init_from": str(stage1_dir), "train.num_steps": 4,
                   "eval.dataset": ""}, get_config=stage2_synthetic.get_config)
-  state = training.train_and_evaluate(config, tmp_path)
+  state = trainer.train_and_evaluate(config, tmp_path)
   before, after = flat(stage1_state.params), flat(state.params)
   assert before.keys() == after.keys()
   backbone = [k for k in before if not k.startswith("refine/")]
@@ -183,24 +185,24 @@ def test_stage1_init_from_warm_starts_every_parameter(stage1, tmp_path):
   config = smoke({"train.init_from": str(stage1_dir), "train.num_steps": 1, "eval.dataset": ""})
   model = build_model(config.model)
   fresh = flat(train_state.init_params(model, config, jax.random.key(config.seed)))
-  loaded = flat(training._load_init_params(train_state.init_params(model, config,
+  loaded = flat(trainer._load_init_params(train_state.init_params(model, config,
                                                                  jax.random.key(config.seed)),
                                             config))
   before = flat(stage1_state.params)
   assert all(np.array_equal(loaded[k], before[k]) for k in before)
   assert any(not np.array_equal(loaded[k], fresh[k]) for k in fresh)
   # One step of the new round starts from those parameters with a fresh optimiser.
-  state = training.train_and_evaluate(config, tmp_path)
+  state = trainer.train_and_evaluate(config, tmp_path)
   assert int(state.step) == 1
   after = flat(state.params)
   assert all(np.allclose(after[k], before[k], atol=2 * config.train.lr) for k in before)
   assert any(not np.array_equal(after[k], before[k]) for k in before)
   with pytest.raises(CheckpointError, match="model differs"):
-    training._load_init_params({}, smoke({"train.init_from": str(stage1_dir), "model.knn": 4}))
+    trainer._load_init_params({}, smoke({"train.init_from": str(stage1_dir), "model.knn": 4}))
   # Fields no parameter depends on may change between rounds (e.g. candidates for larger windows).
   wider = smoke({"train.init_from": str(stage1_dir), "model.truncate_k": 32,
                  "model.infer_truncate_k": 64})
-  loaded = flat(training._load_init_params({}, wider))
+  loaded = flat(trainer._load_init_params({}, wider))
   assert all(np.array_equal(loaded[k], before[k]) for k in before)
 
 
@@ -235,11 +237,11 @@ class NaNAt(BatchLoader):
 
 def test_nonfinite_loss_stops_naming_the_step_and_keeps_last_good_checkpoint(tmp_path,
                                                                             monkeypatch):
-  monkeypatch.setattr(training, "BatchLoader", NaNAt)
+  monkeypatch.setattr(trainer, "BatchLoader", NaNAt)
   config = smoke({"eval.dataset": ""})  # checkpoints at 6, 12, ...; batch 8 is update step 9
   assert config.train.checkpoint_every == 6 and config.train.log_every == 2
   with pytest.raises(NonFiniteError, match=r"step 9\b") as info:
-    training.train_and_evaluate(config, tmp_path)
+    trainer.train_and_evaluate(config, tmp_path)
   assert "checkpoints/6" in str(info.value)
   steps = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit())
   assert steps == [6]
@@ -267,10 +269,10 @@ def test_broken_data_stops_or_is_skipped_and_reported(tmp_path, capsys):
   broken = str(root / "val" / "0000002")
   config = smoke({"data.dataset": f"ft3d:{root}", "data.split": "test", "eval.dataset": ""})
   with pytest.raises(DataError, match="0000002"):
-    training.train_and_evaluate(config, tmp_path / "stop")
+    trainer.train_and_evaluate(config, tmp_path / "stop")
   config.data.skip_broken = True
   with pytest.warns(UserWarning, match="0000002"):
-    state = training.train_and_evaluate(config, tmp_path / "skip")
+    state = trainer.train_and_evaluate(config, tmp_path / "skip")
   assert int(state.step) == config.train.num_steps
   err = capsys.readouterr().err
   assert "skipped 1 unreadable sample(s)" in err and broken in err
@@ -280,19 +282,20 @@ DATA_PARALLEL = textwrap.dedent("""
   import sys
   import jax, numpy as np
   from jaxflow.configs import default
-  from jaxflow import train_state, training
+  from jaxflow.network import train_state
+  from jaxflow.training import trainer
   from jaxflow.data import BatchLoader, open_dataset
-  from jaxflow.model import build_model
+  from jaxflow.network.model import build_model
   assert jax.device_count() == 2, jax.devices()
   config = default.get_config("smoke")
   model = build_model(config.model)
   tx = train_state.make_optimizer(config, config.train.num_steps)
   loader = BatchLoader(open_dataset(config.data.dataset), 2, config.data.num_points, seed=0)
-  mesh = training.make_mesh()
+  mesh = trainer.make_mesh()
   state = train_state.create_train_state(
     train_state.init_params(model, config, jax.random.key(0)), tx)
-  step = training.jit_train_step(model, tx, config, mesh)
-  state, metrics = step(state, training.device_batch(loader.batch(0), mesh))
+  step = trainer.jit_train_step(model, tx, config, mesh)
+  state, metrics = step(state, trainer.device_batch(loader.batch(0), mesh))
   assert len(state.params["update"]["flow_head"]["out_conv2"]["bias"].sharding.device_set) == 2
   metrics, params = jax.device_get((metrics, state.params))
   np.savez(sys.argv[1], loss=metrics["loss"], grad_norm=metrics["grad_norm"],
@@ -307,11 +310,11 @@ def test_data_parallel_over_two_devices_matches_one_device(tmp_path):
   model = build_model(config.model)
   tx = train_state.make_optimizer(config, config.train.num_steps)
   loader = BatchLoader(open_dataset(config.data.dataset), 2, config.data.num_points, seed=0)
-  mesh = training.make_mesh(jax.local_devices()[:1])
+  mesh = trainer.make_mesh(jax.local_devices()[:1])
   state = train_state.create_train_state(
     train_state.init_params(model, config, jax.random.key(0)), tx)
-  step = training.jit_train_step(model, tx, config, mesh)
-  state, metrics = jax.device_get(step(state, training.device_batch(loader.batch(0), mesh)))
+  step = trainer.jit_train_step(model, tx, config, mesh)
+  state, metrics = jax.device_get(step(state, trainer.device_batch(loader.batch(0), mesh)))
 
   env = dict(os.environ, XLA_FLAGS=xla_flags("--xla_force_host_platform_device_count=2"),
              JAX_PLATFORMS="cpu",

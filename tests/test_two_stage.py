@@ -15,9 +15,10 @@ import pytest
 from flax import traverse_util
 
 from conftest import ROOT
-from jaxflow import checkpointing, train_state, training
-from jaxflow.model import build_model
 from jaxflow.configs import ablation, paper
+from jaxflow.network import checkpointing, train_state
+from jaxflow.network.model import build_model
+from jaxflow.training import trainer
 
 TOY_FIELDS = {"data.dataset": "synthetic_lidar:8", "data.num_points": 256, "train.num_steps": 2,
               "train.checkpoint_every": 2, "eval.dataset": ""}
@@ -89,6 +90,6 @@ def test_stage2_in_process(family, tmp_path, capsys):
   params = train_state.init_params(model, config1, jax.random.key(7))
   checkpointing.save_params(tmp_path / "stage1", params, config1)
   config = toy(stage2(), **{"train.init_from": str(tmp_path / "stage1")})
-  training.train_and_evaluate(config, tmp_path / "stage2")
+  trainer.train_and_evaluate(config, tmp_path / "stage2")
   assert "stage 2: backbone loaded from" in capsys.readouterr().err
   check_stage2(tmp_path / "stage1", tmp_path / "stage2", "graph")

@@ -1,4 +1,4 @@
-"""jaxflow.viewer: predict --render FILE.html writes a self-contained 3D page that draws the points.
+"""jaxflow.viz.viewer: predict --render FILE.html writes a self-contained 3D page that draws the points.
 
 The page is opened in headless Chromium and its screenshot inspected for drawn points (saturated
 pixels in the plot area; the same page with every layer hidden is the control). The test skips
@@ -15,8 +15,8 @@ import sys
 import numpy as np
 import pytest
 
-from jaxflow import viewer
 from jaxflow.errors import ConfigError
+from jaxflow.viz import viewer
 
 import zup_scene
 

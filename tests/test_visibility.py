@@ -1,9 +1,9 @@
-"""jaxflow.visibility: what a sensor at the origin saw, on a hand-built cloud."""
+"""jaxflow.geometry.visibility: what a sensor at the origin saw, on a hand-built cloud."""
 
 import numpy as np
 import pytest
 
-from jaxflow import visibility
+from jaxflow.geometry import visibility
 
 # Returns before a y-up sensor looking along z: a cross at 10 m, one far return (the view reaches 40
 # m); and the points asked about, with what each is.

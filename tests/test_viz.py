@@ -1,4 +1,4 @@
-"""jaxflow.viz: PNGs are written, and the Fig. 2 view draws what it says."""
+"""jaxflow.viz.figures: PNGs are written, and the Fig. 2 view draws what it says."""
 
 import json
 import os
@@ -7,7 +7,8 @@ import pathlib
 import numpy as np
 import pytest
 
-from jaxflow import reporting, viz
+from jaxflow.evaluation import reporting
+from jaxflow.viz import figures
 
 import zup_scene
 
@@ -41,7 +42,7 @@ def _drawn(artist):
 def test_green_points_are_pc1_plus_flow():
   pc1, pc2, flow = _pair()
   gt = flow + np.float32(0.5)
-  fig = viz.pair_figure(pc1, pc2, flow, gt=gt, title="t")
+  fig = figures.pair_figure(pc1, pc2, flow, gt=gt, title="t")
   green = _artists(fig, "pc1 + flow")
   assert len(green) == 2  # ground-truth panel first, then the prediction (the paper's layout)
   np.testing.assert_allclose(_drawn(green[0]), pc1 + gt, atol=1e-5)
@@ -54,9 +55,9 @@ def test_green_points_are_pc1_plus_flow():
 
 
 def test_large_clouds_are_subsampled_consistently(monkeypatch):
-  monkeypatch.setattr(viz, "MAX_DRAWN", 100)
+  monkeypatch.setattr(figures, "MAX_DRAWN", 100)
   pc1, pc2, flow = _pair(n=500, m=400)
-  fig = viz.pair_figure(pc1, pc2, flow)
+  fig = figures.pair_figure(pc1, pc2, flow)
   blue, green = _drawn(_artists(fig, "pc1")[0]), _drawn(_artists(fig, "pc1 + flow")[0])
   assert len(blue) == len(green) == 100
   rows = [int(np.flatnonzero((pc1 == p).all(1))[0]) for p in blue]  # the same pc1 points, moved
@@ -66,31 +67,31 @@ def test_large_clouds_are_subsampled_consistently(monkeypatch):
 
 def test_render_pair_and_error_write_pngs(tmp_path):
   pc1, pc2, flow = _pair()
-  assert _is_png(viz.render_pair(pc1, pc2, flow, tmp_path / "a" / "pair.png", title="x"))
-  assert _is_png(viz.render_pair(pc1, pc2, flow, tmp_path / "pair_gt.png", gt=flow * 0))
-  fig = viz.error_figure(pc1, flow, flow * 0, mask_N=np.arange(len(pc1)) % 2 == 0)
+  assert _is_png(figures.render_pair(pc1, pc2, flow, tmp_path / "a" / "pair.png", title="x"))
+  assert _is_png(figures.render_pair(pc1, pc2, flow, tmp_path / "pair_gt.png", gt=flow * 0))
+  fig = figures.error_figure(pc1, flow, flow * 0, mask_N=np.arange(len(pc1)) % 2 == 0)
   label = fig.axes[-1].get_ylabel()
   assert "clipped at 0.3" in label
   art = fig.axes[0].collections[0]
-  assert art.get_array().max() <= viz.ERROR_CLIP + 1e-6 and len(art.get_array()) == len(pc1) // 2
-  assert _is_png(viz.render_error(pc1, flow, flow * 0, tmp_path / "err.png"))
+  assert art.get_array().max() <= figures.ERROR_CLIP + 1e-6 and len(art.get_array()) == len(pc1) // 2
+  assert _is_png(figures.render_error(pc1, flow, flow * 0, tmp_path / "err.png"))
 
 
 def test_evaluate_render_calls_match(tmp_path, monkeypatch):
-  """evaluate.py --render_dir goes through reporting.render_batch -> viz.render_pair, with the pair's name
+  """evaluate.py --render_dir goes through reporting.render_batch -> figures.render_pair, with the pair's name
   and the prediction's EPE over the pair's valid points in the picture."""
   pc1, pc2, flow = _pair()
   mask = np.arange(len(pc1)) % 3 > 0
   pred = flow * 0.9
   batch = {"pc1": pc1[None], "pc2": pc2[None], "flow": flow[None], "mask": mask[None],
            "names": ["ft3d/val/0000007"], "pair_valid": np.ones(1, np.float32)}
-  figures = []
-  real_save = viz._save  # pylint: disable=protected-access
-  monkeypatch.setattr(viz, "_save", lambda fig, path: (figures.append(fig), real_save(fig, path))[1])
+  drawn = []
+  real_save = figures._save  # pylint: disable=protected-access
+  monkeypatch.setattr(figures, "_save", lambda fig, path: (drawn.append(fig), real_save(fig, path))[1])
   reporting.render_batch(tmp_path, batch, pred[None])
   assert _is_png(tmp_path / "ft3d_val_0000007.png") and _is_png(tmp_path / "ft3d_val_0000007_top.png")
   epe = np.mean([np.sqrt(((pred[i] - flow[i]) ** 2).sum()) for i in range(len(pc1)) if mask[i]])
-  fig, top = figures
+  fig, top = drawn
   assert top.axes[2].get_title() == f"end-point error: EPE {epe:.3f} m"  # the top view's third
   assert "ft3d/val/0000007" in fig._suptitle.get_text()  # pylint: disable=protected-access
   assert [ax.get_title() for ax in fig.axes] == ["ground truth", f"prediction: EPE {epe:.3f} m"]
@@ -117,7 +118,7 @@ def _boxes(fig):
 def test_pair_view_title_clears_the_legend_and_stays_inside(with_gt):
   pc1, pc2, flow = _pair()
   long = "a_rather_long_scan_name_frame_000001.ply -> a_rather_long_scan_name_frame_000002.ply"
-  fig = viz.pair_figure(pc1, pc2, flow, gt=flow * 0 if with_gt else None, title=long)
+  fig = figures.pair_figure(pc1, pc2, flow, gt=flow * 0 if with_gt else None, title=long)
   boxes, page = _boxes(fig)
   assert not boxes["title"].overlaps(boxes["legend"])
   for name, box in boxes.items():
@@ -128,7 +129,7 @@ def test_error_view_labels_are_inside_the_figure():
   rng = np.random.default_rng(0)  # a wide, flat driving scene (KITTI's) pushed "y (m)" out
   pc1 = rng.uniform([-30, -1.4, 0], [30, 2, 35], (3000, 3)).astype(np.float32)
   flow = rng.normal(0, 0.3, (3000, 3)).astype(np.float32)
-  fig = viz.error_figure(pc1, flow, flow * 0, title="scene")
+  fig = figures.error_figure(pc1, flow, flow * 0, title="scene")
   boxes, page = _boxes(fig)
   assert "axes 0 zaxis label" in boxes and "axes 1 yaxis label" in boxes  # y (m), the colour bar
   for name, box in boxes.items():
@@ -138,7 +139,7 @@ def test_error_view_labels_are_inside_the_figure():
 def test_far_returns_are_left_out_of_the_view_and_counted():
   pc1, pc2, flow = _pair(n=2000, m=2000)
   far = np.float32([[300.0, 0.0, 250.0], [-200.0, 40.0, -300.0]])  # two stray returns of a sweep
-  fig = viz.pair_figure(np.concatenate([pc1, far]), pc2, np.concatenate([flow, far * 0]))
+  fig = figures.pair_figure(np.concatenate([pc1, far]), pc2, np.concatenate([flow, far * 0]))
   ax = fig.axes[0]
   limits = np.sort([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()], axis=1)  # x inverted: left, left
   assert ax.get_xlim()[0] > ax.get_xlim()[1]
@@ -161,21 +162,21 @@ def test_learning_curves(tmp_path, with_stage):
       r["stage"] = 1 if step <= 100 else 2
     lines.append(json.dumps(r))
   (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + "\n")
-  out = viz.plot_learning_curves(tmp_path / "metrics.jsonl", tmp_path / "plots" / "curve.png")
+  out = figures.plot_learning_curves(tmp_path / "metrics.jsonl", tmp_path / "plots" / "curve.png")
   assert out is not None and _is_png(out)
   assert not (tmp_path / "learning_curve.png").exists()  # nothing written beside the log
   (tmp_path / "empty.jsonl").write_text("")
-  assert viz.plot_learning_curves(tmp_path / "empty.jsonl", tmp_path / "none.png") is None
+  assert figures.plot_learning_curves(tmp_path / "empty.jsonl", tmp_path / "none.png") is None
 
 
 def test_importing_viz_keeps_the_sessions_backend(tmp_path):
-  """A notebook's backend (here pdf, any but Agg) survives importing viz and writing its PNGs."""
+  """A notebook's backend (here pdf, any but Agg) survives importing jaxflow.viz.figures and writing its PNGs."""
   import subprocess  # pylint: disable=import-outside-toplevel
   import sys  # pylint: disable=import-outside-toplevel
-  code = ("import matplotlib; matplotlib.use('pdf'); import numpy as np; from jaxflow import viz; "
+  code = ("import matplotlib; matplotlib.use('pdf'); import numpy as np; from jaxflow.viz import figures; "
           "p = np.random.default_rng(0).uniform(0, 9, (200, 3)).astype('f4'); "
-          f"viz.render_pair(p, p, p * 0, r'{tmp_path / 'a.png'}'); "
-          f"viz.render_sweep(p, p, p * 0, r'{tmp_path / 'b.png'}', up='z'); "
+          f"figures.render_pair(p, p, p * 0, r'{tmp_path / 'a.png'}'); "
+          f"figures.render_sweep(p, p, p * 0, r'{tmp_path / 'b.png'}', up='z'); "
           "print(matplotlib.get_backend())")
   out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
   assert out.stdout.strip() == "pdf"
@@ -193,7 +194,7 @@ def test_top_view_is_seen_from_above_not_mirrored(up):
   scene = zup_scene.sweep_pair(n_ground=800, reach=60.0)
   to_frame = (lambda p: p) if up == "z" else (lambda p: p[:, [1, 2, 0]])  # (y, z, x): y up
   pc1, pc2, flow = (to_frame(a) for a in (scene.pc1, scene.pc2, scene.flow))
-  fig = viz.sweep_figure(pc1, pc2, flow, up=up, ground1=scene.ground1, max_range=35.0)
+  fig = figures.sweep_figure(pc1, pc2, flow, up=up, ground1=scene.ground1, max_range=35.0)
   ax = fig.axes[0]
   (art,) = _top_artists(fig, "pc1")
   drawn = np.asarray(art.get_offsets())
@@ -218,7 +219,7 @@ def test_static_world_15mm_off_looks_different_from_29cm_off():
   colours = {}
   for off in (0.015, 0.29):
     flow = scene.flow + np.float32([off, 0, 0]) * ~scene.moving1[:, None]
-    fig = viz.sweep_figure(scene.pc1, scene.pc2, flow, up="z", ego_flow=scene.ego_flow,
+    fig = figures.sweep_figure(scene.pc1, scene.pc2, flow, up="z", ego_flow=scene.ego_flow,
                            ground1=scene.ground1)
     (art,) = _top_artists(fig, "pc1")
     values = np.asarray(art.get_array())
@@ -229,7 +230,7 @@ def test_static_world_15mm_off_looks_different_from_29cm_off():
     colours[off] = rgba[static].mean(0)[:3], rgba[moving].mean(0)[:3]
   (s_small, m_small), (s_big, _) = colours[0.015], colours[0.29]
   if os.environ.get("JAXFLOW_DOCS_IMAGES"):  # the top view docs/users.md shows
-    viz.render_sweep(scene.pc1, scene.pc2, scene.flow + np.float32([0.015, 0, 0]) * ~scene.moving1[
+    figures.render_sweep(scene.pc1, scene.pc2, scene.flow + np.float32([0.015, 0, 0]) * ~scene.moving1[
       :, None], ROOT / "docs" / "images" / "top_view.png", up="z", ego_flow=scene.ego_flow,
       ground1=scene.ground1, title="synthetic z-up sweep: true flow, static world 1.5 cm off")
   assert np.linalg.norm(s_small - s_big) > 0.3
@@ -238,7 +239,7 @@ def test_static_world_15mm_off_looks_different_from_29cm_off():
 
 def test_pc1_plus_flow_lies_under_pc2():
   scene = zup_scene.sweep_pair(n_ground=500)
-  fig = viz.sweep_figure(scene.pc1, scene.pc2, scene.flow, up="z")
+  fig = figures.sweep_figure(scene.pc1, scene.pc2, scene.flow, up="z")
   labels = [c.get_label() for c in fig.axes[1].collections]
   assert labels == ["pc1 + flow", "pc2"]  # drawn first: underneath
   warped, pc2 = fig.axes[1].collections

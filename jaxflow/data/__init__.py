@@ -1,4 +1,4 @@
-"""Scene-flow data: readers, synthetic scenes, HDF5, sampling and batching (DESIGN.md section 2).
+"""Scene-flow data: readers, synthetic scenes, HDF5, sampling and batching.
 
     from jaxflow.data import open_dataset, read_points, eval_batches, BatchLoader
 

@@ -1,5 +1,5 @@
 """OpenSceneFlow's unified h5 format (Argoverse 2, Waymo, nuScenes, ... as converted by the
-OpenSceneFlow toolkit; DESIGN.md section 7), registered as "opensf".
+OpenSceneFlow toolkit's dataprocess/ scripts), registered as "opensf".
 
     ds = open_dataset("opensf:/data/av2", "val")             # /data/av2/val/<log>.h5
     ds = open_dataset("opensf:/data/av2,max_range=50,ground=keep,frame=camera", "val")
@@ -16,8 +16,9 @@ pc1 = lidar(t0)[:, :3], pc2 = lidar(t1)[:, :3]. Options after the folder (", key
   max_range=35 (default; 0 keeps all): keep the points within this many metres in xy;
   frame=ego (default, as stored: x forward, y left, z up) | camera: the clouds and flows rotated
     into the models' frame (x left, y up, z forward: (x, y, z) -> (y, z, x), a proper rotation;
-    jaxflow.frames); evaluation rotates ego clouds into it before the model and the flow back
-    after (frames.dataset_up), so either gives the same flow; the metrics do not change under it.
+    jaxflow.geometry.frames); evaluation rotates ego clouds into it before the model and the flow
+    back after (frames.dataset_up), so either gives the same flow; the metrics do not change under
+    it.
   region=disc (default: the cuts above) | challenge: the Argoverse 2 challenge's points, pc1 =
     the frame's `eval_mask` points in file order where the file has them (then only the frames
     with an eval_mask are pairs, as the challenge evaluates), else the non-ground points with
@@ -37,10 +38,10 @@ pc1 = lidar(t0)[:, :3], pc2 = lidar(t1)[:, :3]. Options after the folder (", key
     ego frame whichever version the file is.
 mask = flow_is_valid (and eval_mask where the frame has one); Pair.rigid_flow = ego_motion applied
 to pc1, minus pc1; Pair.foreground = flow_category_indices != 0 (the three-way EPE,
-`jaxflow.metrics.three_way_epe`); Pair.category = flow_category_indices and Pair.ego_xy = pc1's x,
-y in the ego frame (the official breakdown, `jaxflow.av2_eval`). A pair's name is FILE:TIMESTAMP
-(`sweep_id` gives av2's (log_id, timestamp_ns)). Errors name the file and the group. A split is a
-subfolder (train, val, test; default train).
+`jaxflow.evaluation.metrics.three_way_epe`); Pair.category = flow_category_indices and Pair.ego_xy =
+pc1's x, y in the ego frame (the official breakdown, `jaxflow.evaluation.av2_eval`). A pair's name
+is FILE:TIMESTAMP (`sweep_id` gives av2's (log_id, timestamp_ns)). Errors name the file and the
+group. A split is a subfolder (train, val, test; default train).
 """
 
 import pathlib

@@ -30,7 +30,7 @@ def _stack(pairs: list[Pair]) -> dict:
   if all(p.has_labels for p in pairs):  # ego-motion flow and labels, for the three-way EPE
     batch["rigid_flow"] = np.stack([p.rigid_flow for p in pairs])
     batch["foreground"] = np.stack([p.foreground for p in pairs])
-  if all(p.category is not None for p in pairs):  # Argoverse 2 labels (jaxflow.av2_eval)
+  if all(p.category is not None for p in pairs):  # Argoverse 2 labels (jaxflow.evaluation.av2_eval)
     batch["category"] = np.stack([p.category for p in pairs])
     batch["ego_xy"] = np.stack([p.ego_xy for p in pairs])
   return batch
@@ -231,11 +231,11 @@ def eval_batches(dataset, batch_size: int, num_points: int | None, seed: int = 0
 
   Pair i is sampled with np.random.default_rng((seed, i)), so two runs give identical batches;
   num_points None keeps whole clouds (batch_size must be 1). The last batch is padded by repeating
-  its last pair; 'pair_valid' (B, float32) is 1 for real pairs, 0 for padding. Besides the
-  training keys the dict holds 'names' (list of B str) and, when every pair has them
-  (`Pair.has_labels`), 'rigid_flow' (B x N x 3) and 'foreground' (B x N bool), for the three-way EPE.
-  shard (index, count): only the batches index, index + count, ... (one process's share; the same
-  batches as unsharded).
+  its last pair; 'pair_valid' (B, float32) is 1 for real pairs, 0 for padding. Besides the training
+  keys the dict holds 'names' (list of B str) and, when every pair has them (`Pair.has_labels`),
+  'rigid_flow' (B x N x 3) and 'foreground' (B x N bool), for the three-way EPE. shard (index,
+  count): only the batches index, index + count, ... (one process's share; the same batches as
+  unsharded).
   """
   index, count = shard
   if not 0 <= index < count:

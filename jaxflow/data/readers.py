@@ -1,9 +1,9 @@
 """Benchmark datasets (FT3D, KITTI, Argoverse, FlowNet3D's FT3Do/KITTIo) as `Pair`s, registered
 with `jaxflow.data.registry`.
 
-Every reader returns full-resolution clouds after its own cuts (DESIGN.md section 2), float32 with a
-bool mask, and names the file in every error. Readers are lazy: opening lists the folders, `ds[i]`
-reads pair i.
+Every reader returns full-resolution clouds after its own cuts (each reader's docstring says which),
+float32 with a bool mask, and names the file in every error. Readers are lazy: opening lists the
+folders, `ds[i]` reads pair i.
 """
 
 import pathlib
@@ -13,8 +13,8 @@ import zipfile
 
 import numpy as np
 
-from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.data.pointfiles import MIN_POINTS, drop_nonfinite, load_npy, read_points, to_float32
+from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.errors import DataError
 
 DEPTH_LIMIT = 35.0  # metres: both FT3D and KITTI keep pc1.z < 35 and pc2.z < 35.
@@ -110,8 +110,8 @@ class FT3D(Dataset):
   """HPLFlowNet FlyingThings3D: ROOT/{train,val}/NNNNNNN/pc1.npy, pc2.npy.
 
   x and z negated on load (stored x right, y up, z backward -> x left, y up, z forward: a rotation
-  about y, jaxflow.frames), pc1.z < 35 and pc2.z < 35 kept, flow = pc2 - pc1, mask all True.
-  Splits (see `ft3d_split_positions`): "train" (4910), "val" (2000), "train_all" (17640) from
+  about y, jaxflow.geometry.frames), pc1.z < 35 and pc2.z < 35 kept, flow = pc2 - pc1, mask all
+  True. Splits (see `ft3d_split_positions`): "train" (4910), "val" (2000), "train_all" (17640) from
   train/; "test" is val/ (3824). With fewer than 19640 train/ folders the split rules use each
   folder's number as its position (the full set is numbered 0 .. 19639), and describe() says the
   split is partial.
@@ -165,10 +165,10 @@ class FT3D(Dataset):
 class KITTI(Dataset):
   """HPLFlowNet KITTI Scene Flow 2015: ROOT/NNNNNN/pc1.npy, pc2.npy, the 142 benchmark frames only.
 
-  No flip (stored x left, y up, z forward: the camera's x and y negated, jaxflow.frames); ground
-  removed (pc1.y and pc2.y both < -1.4); pc1.z < 35 and pc2.z < 35 kept;
-  flow = pc2 - pc1; mask all True. Folders outside the benchmark list are ignored; a root with
-  only some benchmark frames is read with a warning, and describe() says how many.
+  No flip (stored x left, y up, z forward: the camera's x and y negated, jaxflow.geometry.frames);
+  ground removed (pc1.y and pc2.y both < -1.4); pc1.z < 35 and pc2.z < 35 kept; flow = pc2 - pc1;
+  mask all True. Folders outside the benchmark list are ignored; a root with only some benchmark
+  frames is read with a warning, and describe() says how many.
   """
 
   def __init__(self, root, split: str | None = None):

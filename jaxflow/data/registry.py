@@ -17,11 +17,11 @@ class Pair:
   """One scene-flow pair; everything float32 except mask (bool: flow valid / evaluated).
 
   LiDAR datasets with ego-motion and labels (opensf) also give, for the three-way EPE
-  (`jaxflow.metrics.three_way_epe`), `rigid_flow` (the ego-motion flow of each pc1 point) and
-  `foreground` (bool: the point is on an object); other readers leave them None. Datasets with
+  (`jaxflow.evaluation.metrics.three_way_epe`), `rigid_flow` (the ego-motion flow of each pc1 point)
+  and `foreground` (bool: the point is on an object); other readers leave them None. Datasets with
   Argoverse 2 labels also give `category` (N uint8, av2's CATEGORY_TO_INDEX, 0 = background) and
   `ego_xy` (N x 2: each pc1 point's x, y in its ego frame), for the official breakdown
-  (`jaxflow.av2_eval`); both or neither, and only with rigid_flow.
+  (`jaxflow.evaluation.av2_eval`); both or neither, and only with rigid_flow.
   """
   pc1: np.ndarray  # N x 3
   pc2: np.ndarray  # M x 3

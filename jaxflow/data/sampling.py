@@ -33,7 +33,7 @@ def sample_pair(pair: Pair, num_points: int, rng: np.random.Generator) -> tuple[
   idx2, rep2 = sample_indices(len(pair.pc2), num_points, rng)
   labels = {} if not pair.has_labels else dict(rigid_flow=take(pair.rigid_flow, idx1),
                                                 foreground=take(pair.foreground, idx1))
-  if pair.category is not None:  # Argoverse 2 labels (jaxflow.av2_eval)
+  if pair.category is not None:  # Argoverse 2 labels (jaxflow.evaluation.av2_eval)
     labels.update(category=take(pair.category, idx1), ego_xy=take(pair.ego_xy, idx1))
   sampled = Pair(pc1=take(pair.pc1, idx1), pc2=take(pair.pc2, idx2), flow=take(pair.flow, idx1),
                  mask=take(pair.mask, idx1), name=pair.name, **labels)

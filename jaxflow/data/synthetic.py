@@ -8,17 +8,17 @@ exact up to the bumps of rocks). The two frames use independent ray jitter, so p
 frame-2 surfaces at other points than pc1 (no correspondence); the flow of a pc1 point is where
 that surface point moves in frame 2, in frame 2's sensor coordinates (sensor motion included).
 
-- synthetic_things: FlyingThings3D-like, in the FT3D reader's convention (after its x, z flip):
-  a pinhole camera of FT3D's field of view (960 x 540 px, f = 1050 px: the real samples fill
-  |x/z| <= 0.457, |y/z| <= 0.257), z forward (depth), x left, y vertical (the objects float, as in
-  FT3D, so the sign of y carries no gravity; the scenes are mirror-symmetric in x, and x left makes
-  the frame right-handed like the readers': jaxflow.frames). 5-15 objects (primitives and composites: chairs,
-  tables, dumbbells, snowmen, mushrooms, arches) centred at 9-32 m before a tilted background wall
-  at 28-60 m, often cut by the 35 m limit as FT3D's far backgrounds are; the FT3D reader's cut
-  applied. Like the real samples (a random subset of a depth camera's valid pixels) the clouds
-  have ~11k points whatever part of the view the objects fill: a coarse 48 x 27 cast measures that
-  part, then a jittered grid of 1-4 x 160 x 90 rays is cast. Motion ranges (`THINGS`) are tuned to
-  the real samples' flow, depth, extent and density statistics (benchmarks/RESULTS.md).
+- synthetic_things: FlyingThings3D-like, in the FT3D reader's convention (after its x, z flip): a
+  pinhole camera of FT3D's field of view (960 x 540 px, f = 1050 px: the real samples fill |x/z| <=
+  0.457, |y/z| <= 0.257), z forward (depth), x left, y vertical (the objects float, as in FT3D, so
+  the sign of y carries no gravity; the scenes are mirror-symmetric in x, and x left makes the frame
+  right-handed like the readers': jaxflow.geometry.frames). 5-15 objects (primitives and composites:
+  chairs, tables, dumbbells, snowmen, mushrooms, arches) centred at 9-32 m before a tilted
+  background wall at 28-60 m, often cut by the 35 m limit as FT3D's far backgrounds are; the FT3D
+  reader's cut applied. Like the real samples (a random subset of a depth camera's valid pixels) the
+  clouds have ~11k points whatever part of the view the objects fill: a coarse 48 x 27 cast measures
+  that part, then a jittered grid of 1-4 x 160 x 90 rays is cast. Motion ranges (`THINGS`) are tuned
+  to the real samples' flow, depth, extent and density statistics (benchmarks/RESULTS.md).
 - synthetic_lidar: KITTI-like driving pairs in the KITTI reader's convention (y up, z forward,
   ground near y = -1.6): ground, buildings, poles, trees, parked and moving cars (body + cabin),
   pedestrians and ego-motion (0.3-1.5 m forward, +-2 deg yaw per frame); 64 beams over the
@@ -114,8 +114,9 @@ def lidar_grid(rng: np.random.Generator, scale: int = 1) -> Grid:
   return Grid(dirs, el, el, az - step / 2, az + step / 2, pinhole=False)
 
 
-# Ray-primitive intersections in the primitive's local frame: rays o + t d (o: 3, d: 3 x K) -> t (K),
-# inf where missed; t is in units of |d|. Rows of d are kept separate: numpy is fastest on 1-D arrays.
+# Ray-primitive intersections in the primitive's local frame: rays o + t d (o: 3, d: 3 x K) -> t
+# (K), inf where missed; t is in units of |d|. Rows of d are kept separate: numpy is fastest on 1-D
+# arrays.
 
 def _box(o, d, size):
   t_near, t_far = None, None

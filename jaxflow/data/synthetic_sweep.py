@@ -31,6 +31,7 @@ import numpy as np
 from jaxflow.data import synthetic as syn
 from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.errors import DataError
+from jaxflow.geometry import frames
 
 SPLITS = ("val", "test")
 SEED_BASE = {"val": 1_000_000, "test": 2_000_000}  # seeds: base + index (disjoint ranges)
@@ -93,7 +94,7 @@ class Options:
 
 
 # z up (x forward, y left) <- the caster's frame (x, y up, z forward): a cyclic permutation.
-_TO_Z_UP = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+_TO_Z_UP = np.eye(3)[frames.permutation("y", "z")]
 
 
 def _grid(rng, beams: int, columns: int, offset_deg: float = 0.0) -> syn.Grid:

@@ -1,0 +1,134 @@
+"""The coordinate frames of jaxflow: the models', each reader's, and the rotations between them.
+
+    pc_model_Nx3 = to_model(pc_Nx3, up="z")          # a z-up sweep as the network wants it
+    flow_Nx3 = from_model(flow_model_Nx3, up="z")    # and its flow back
+    flow_fn = in_model_frame(flow_fn, up="z")        # the same around any (pc1, pc2) -> flow
+    up = dataset_up(dataset)                         # the up axis of a reader's clouds
+
+THE MODEL FRAME. Every shipped model was trained in the benchmark readers' camera frame: x left,
+y up, z forward, metres, right-handed (x cross y = z). It is not "x right": that labelling of the
+same axes is a mirror image (det -1), and a scene read in it turns the other way.
+
+Why x is left (HPLFlowNet's stored files, the readers' inputs):
+- FT3D (`ft3d`): HPLFlowNet's pixel2pc turns FlyingThings3D's (negative) disparities d into
+  x = (u - cx) / |d|, y = -(v - cy) / |d|, z = -f / |d| (u right, v down in the image): x right,
+  y up, z backward. The reader negates x and z (a 180 degree rotation about y, det +1):
+  x left, y up, z forward.
+- KITTI (`kitti`): HPLFlowNet's KITTI files hold the camera's (x right, y down, z forward) with x
+  and y negated (a 180 degree rotation about z): x left, y up, z forward, ground near y = -1.6.
+- synthetic_things, synthetic_lidar (jaxflow.data.synthetic): generated in the model frame.
+- synthetic_sweep (jaxflow.data.synthetic_sweep): raw sweeps, z up (x forward, y left).
+- opensf (OpenSceneFlow's Argoverse 2 and other LiDAR logs): `frame=ego` (its default) the ego
+  frame as stored, x forward, y left, z up; `frame=camera` rotated into the model frame.
+- h5 (jaxflow.data.convert): the frame of the reader it was converted from (its `source`).
+- argoverse (NSFP's npz), flownet3d (FlowNet3D's npz), files: as stored; jaxflow does not rotate
+  them (`dataset_up` says "y": the model frame is assumed).
+
+SENSOR CONVENTIONS BY UP AXIS (predict's --up). A sensor frame is named by its up axis, and the
+other two follow cyclically, so that every one is right-handed: up axis k, forward k + 1, left
+k + 2 (mod 3).
+- up z: x forward, y left, z up (LiDAR, ISO 8855 vehicles, the Argoverse 2 ego frame);
+- up y: z forward, x left, y up: the model frame itself (KITTI's and FT3D's readers);
+- up x: y forward, z left, x up.
+The rotation into the model frame takes (left, up, forward) to (x, y, z): a cyclic permutation of
+the axes, so a proper rotation (det +1, never a mirror). Flows are vectors: they turn the same way.
+"""
+
+import numpy as np
+
+from jaxflow.errors import ConfigError
+
+MODEL_UP = "y"  # the models' up axis (x left, y up, z forward)
+UP_AXES = ("x", "y", "z")
+SENSOR_AXES = {"z": "x forward, y left, z up", "y": "x left, y up, z forward (the model frame)",
+               "x": "x up, y forward, z left"}
+
+# Each reader's frame: (what its clouds are in, the up axis of that frame).
+READERS = {
+  "ft3d": ("x left, y up, z forward (HPLFlowNet's x right, y up, z backward; x, z negated)", "y"),
+  "kitti": ("x left, y up, z forward (HPLFlowNet's camera frame, x and y negated)", "y"),
+  "synthetic_things": ("x left, y up, z forward (generated in the model frame)", "y"),
+  "synthetic_lidar": ("x left, y up, z forward (generated in the model frame)", "y"),
+  "opensf,frame=ego": ("x forward, y left, z up (the ego frame as stored)", "z"),
+  "synthetic_sweep": ("x forward, y left, z up (raw 360-degree sweeps, the sensor at the origin)",
+                      "z"),
+  "opensf,frame=camera": ("x left, y up, z forward (the ego frame rotated by to_model)", "y"),
+}
+
+
+def up_index(up: str) -> int:
+  """The column of the up axis "x", "y" or "z"; a ConfigError for any other name."""
+  if up not in UP_AXES:
+    raise ConfigError(f"up must be one of x, y, z, got {up!r}")
+  return UP_AXES.index(up)
+
+
+def permutation(up: str, to: str = MODEL_UP) -> list[int]:
+  """Column order taking a frame with up axis `up` into the frame with up axis `to` by a cyclic
+  permutation (a proper rotation): new[:, i] = old[:, permutation(up, to)[i]]. The model frame
+  (to "y"): left, up, forward; a sensor's z-up frame (to "z"): forward, left, up."""
+  k, j = up_index(up), up_index(to)
+  return [(k + i - j) % 3 for i in range(3)]
+
+
+def rotation(up: str) -> np.ndarray:
+  """The 3 x 3 rotation R (det +1) with model = R @ sensor for a sensor frame with this up axis."""
+  return np.eye(3)[permutation(up)]
+
+
+def to_model(points_Nx3, up: str) -> np.ndarray:
+  """Points (or vectors) of a sensor frame with up axis `up` in the model frame."""
+  return np.ascontiguousarray(np.asarray(points_Nx3)[..., permutation(up)])
+
+
+def from_model(points_Nx3, up: str) -> np.ndarray:
+  """The inverse of `to_model`: model-frame points or vectors back in the sensor's frame."""
+  inverse = np.argsort(permutation(up))
+  return np.ascontiguousarray(np.asarray(points_Nx3)[..., inverse])
+
+
+def in_model_frame(flow_fn, up: str):
+  """(pc1, pc2) -> flow in the sensor frame, from a flow_fn that works in the model frame: the
+  clouds are rotated into it before and the flow back after. up "y" (the model frame): flow_fn."""
+  if up_index(up) == up_index(MODEL_UP):
+    return flow_fn
+  return lambda pc1_Nx3, pc2_Mx3: from_model(flow_fn(to_model(pc1_Nx3, up), to_model(pc2_Mx3, up)),
+                                             up)
+
+
+def in_model_frame_jax(predict, up: str):
+  """`in_model_frame` for a jitted batch predict (params..., pc1 B x N x 3, pc2 B x M x 3) -> flow
+  B x N x 3 or (flow, info), as jaxflow.evaluation.evaluator's: jitted again, so `.lower` still works."""
+  if up_index(up) == up_index(MODEL_UP):
+    return predict
+  import jax  # pylint: disable=import-outside-toplevel
+
+  forward, back = permutation(up), [int(i) for i in np.argsort(permutation(up))]
+
+  def rotated(*args):
+    *params, pc1, pc2 = args
+    out = predict(*params, pc1[..., forward], pc2[..., forward])
+    if isinstance(out, tuple):
+      return (out[0][..., back], *out[1:])
+    return out[..., back]
+
+  return jax.jit(rotated)
+
+
+def dataset_up(dataset) -> str:
+  """The up axis of a dataset's clouds: "z" for opensf's ego frame (also converted to h5), "y" (the
+  model frame) for the other readers (see READERS)."""
+  name = str(getattr(dataset, "name", ""))
+  if name.startswith("synthetic_sweep:"):
+    return "z"
+  if name.startswith("opensf:"):
+    return "z" if getattr(dataset, "options", {}).get("frame", "ego") == "ego" else "y"
+  source = str(getattr(dataset, "source", ""))  # h5: the spec it was converted from
+  if name.startswith("h5:") and source.startswith("opensf:"):
+    return "y" if "frame=camera" in source.split(",") else "z"
+  return MODEL_UP
+
+
+def describe(up: str) -> str:
+  """The sensor convention of an up axis, for messages."""
+  return SENSOR_AXES[UP_AXES[up_index(up)]]

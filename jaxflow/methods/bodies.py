@@ -1,0 +1,323 @@
+"""The rigid bodies of a scene, found from a flow and fitted to pc2: the last stage of `optimise`.
+
+    flow_Nx3, found = rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3)   # NumPy + SciPy, on the host
+
+A scene of FT3D or a street is a few rigid bodies (the static world seen from a moving sensor is
+one): this stage serves pairs without ground or ego-motion structure. From a flow that is
+right on most of each body (the optimiser's):
+1. hypotheses: sequential RANSAC on the flow's correspondences p -> p + flow, each sample drawn
+   among a point's nearest neighbours (a body is local), inliers removed, until too few remain;
+2. each hypothesis refined against pc2 by a robust ICP of its inliers (point-to-plane with a
+   small point-to-point part, so a plane cannot slide along itself), the unrefined motion kept
+   beside it; a refinement that moves its points by more than `max_shift` on average is refused;
+3. each point takes the motion whose moved neighbourhood lies nearest pc2's surfaces (distances to
+   pc2's local planes, truncated, averaged over the point's neighbours in pc1), among the motions
+   its neighbours hold (a body is contiguous), pulled a little towards its starting flow and towards
+   the largest body (the world) so that ties (a plane sliding along itself) do not jump; motions are
+   refitted to the points they won and the points reassigned (`em_rounds`); a body whose points the
+   world's motion fits as well (on the points pc2 would see: jaxflow.geometry.visibility) joins the
+   world; so does one the world's motion takes out of pc2's view when its own motion is a slide of
+   the world's along its surfaces (a facade leaving a camera's view, dragged along itself onto what
+   pc2 still sees: nothing refutes the world's motion there);
+4. per-point freedom where no rigid motion fits: a point whose best motion fits worse than its
+   starting flow by more than `free_margin` keeps the starting flow, unless its best motion takes
+   it out of pc2's view (there a starting flow that fits is a point dragged onto what pc2 saw).
+Seeded: the same input gives the same flow. Settings were chosen on 7 of the 21 shared FT3D
+pairs, the KITTI sample and 4 val pairs each of synthetic_lidar and synthetic_things
+(benchmarks/METHODS.md).
+"""
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from jaxflow.geometry import rigid
+from jaxflow.geometry.visibility import OUTSIDE, SEEN, View
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+  inlier: float = 0.08  # metres: a correspondence this near a hypothesis supports it
+  trials: int = 150  # RANSAC samples a hypothesis
+  local: int = 32  # a sample's three points come from one point's this many nearest neighbours
+  min_support: int = 30  # points: a smaller hypothesis ends the search
+  max_bodies: int = 25
+  sample: int = 8192  # points at most that the hypotheses are searched on (seeded sample)
+  icp_rounds: int = 20
+  icp_points: int = 4000  # points at most an ICP fits (seeded sample)
+  point_weight: float = 0.1  # of the point-to-point rows beside the point-to-plane ones
+  max_shift: float = 0.5  # metres: a refinement moving its points more than this is refused
+  neighbours: int = 32  # a point's cost is the mean over this many neighbours in pc1
+  truncate: float = 0.3  # metres
+  pull: float = 0.03  # per metre of (neighbourhood mean) departure from the starting flow
+  stick: float = 0.05  # metres of cost: a motion that departs from a point's flow must fit better
+  world: float = 0.02  # metres of cost: any body but the largest (the world) must fit better
+  em_rounds: int = 6
+  free_margin: float = 0.05  # metres: a point keeps its starting flow when rigid fits this worse
+  merge: float = 0.02  # metres of cost: a body the world's motion fits this well joins the world
+  min_seen: float = 0.3  # ... judged on the points pc2 would see moved so; fewer seen: no judging
+  slide: float = 0.1  # a body off pc2's view under the world's motion joins it when its own motion
+  # departs from the world's along its surfaces (|normal part| / departure below this: a slide)
+  hidden: float = 0.5  # metres: a point this far behind pc2's nearest return in its direction
+  view_bin_deg: float = 1.0  # degrees: pc2's directions binned (its nearest return per bin)
+  seed: int = 0
+
+  def __post_init__(self):
+    for name in ("trials", "local", "min_support", "max_bodies", "sample", "icp_points",
+                 "neighbours"):
+      if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+        raise ValueError(f"bodies {name} must be an integer >= 1, got {getattr(self, name)!r}")
+    if self.local < 3:
+      raise ValueError(f"bodies local must be >= 3 (a sample is 3 points), got {self.local}")
+    for name in ("inlier", "truncate", "max_shift", "hidden", "view_bin_deg"):
+      if not getattr(self, name) > 0:
+        raise ValueError(f"bodies {name} must be > 0, got {getattr(self, name)!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Found:
+  """What rigid_bodies did: hypotheses found, points that kept their starting flow."""
+  bodies: int
+  free_points: int
+  note: str | None = None
+
+
+def _normals(points_Mx3, k: int = 10) -> np.ndarray:
+  """Unit normal of each point's k-neighbourhood (least-spread direction)."""
+  _, idx = cKDTree(points_Mx3).query(points_Mx3, min(k, len(points_Mx3)), workers=-1)
+  centred = points_Mx3[idx] - points_Mx3[idx].mean(1, keepdims=True)
+  return np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1][:, :, 0]
+
+
+def _slides(points_Kx3, normals_Kx3, motion, world, most: float) -> bool:
+  """Whether `motion` departs from `world` along the points' surfaces (a plane sliding along
+  itself, which pc2 cannot tell from standing on it): the median |normal part| / departure is
+  below `most`."""
+  departure = (points_Kx3 @ motion[0].T + motion[1]) - (points_Kx3 @ world[0].T + world[1])
+  across = np.abs(np.sum(departure * normals_Kx3, 1))
+  return bool(np.median(across / np.maximum(np.linalg.norm(departure, axis=1), 1e-9)) < most)
+
+
+def _join_world(best_N, motions, bodies_found, pc1, normals_Nx3, target, view, settings):
+  """best_N with every body moved to the world (motion 0) that the world's motion explains as well
+  as its own: judged on the points pc2 would see under the world's motion when `min_seen` of them
+  are; when it takes most of them out of pc2's view, the body joins if its own motion is a slide
+  of the world's. A body mostly hidden under the world's motion keeps its own."""
+  world = motions[0]
+  moved = pc1 @ world[0].T + world[1]
+  state = view.state(moved)
+  world_cost = target.cost(moved, settings.truncate)
+  out = best_N.copy()
+  for h in np.unique(best_N):
+    if h % bodies_found == 0:
+      continue
+    pts = np.flatnonzero(best_N == h)
+    seen = state[pts] == SEEN
+    if seen.mean() >= settings.min_seen:
+      r, t = motions[h]
+      own = target.cost(pc1[pts[seen]] @ r.T + t, settings.truncate)
+      joins = world_cost[pts[seen]].mean() <= own.mean() + settings.merge
+    else:
+      joins = (state[pts] == OUTSIDE).mean() >= 0.5 and _slides(
+        pc1[pts], normals_Nx3[pts], motions[h], world, settings.slide)
+    if joins:
+      out[pts] = 0
+  return out
+
+
+def _cross(a_Nx3, b_Nx3):
+  """Row-wise a x b (np.cross without its axis handling, which dominated the ICP's time)."""
+  return np.stack([a_Nx3[:, 1] * b_Nx3[:, 2] - a_Nx3[:, 2] * b_Nx3[:, 1],
+                   a_Nx3[:, 2] * b_Nx3[:, 0] - a_Nx3[:, 0] * b_Nx3[:, 2],
+                   a_Nx3[:, 0] * b_Nx3[:, 1] - a_Nx3[:, 1] * b_Nx3[:, 0]], 1)
+
+
+def _skew(v_3):
+  """[v]_x: the matrix of x -> v x x."""
+  return np.array([[0.0, -v_3[2], v_3[1]], [v_3[2], 0.0, -v_3[0]], [-v_3[1], v_3[0], 0.0]])
+
+
+class _Target:
+  """pc2 prepared once: its k-d tree and normals."""
+
+  def __init__(self, pc2_Mx3):
+    self.points = pc2_Mx3
+    self.tree = cKDTree(pc2_Mx3)
+    self.normals = _normals(pc2_Mx3)
+
+  def cost(self, moved_Nx3, truncate: float) -> np.ndarray:
+    """Per point: its distance to the plane of the nearest pc2 point (`truncate` when none is
+    within `truncate`). Not the distance to the point: where two sweeps sample a surface at other
+    places (a LiDAR's rings on a facade), that distance favours motions that line the samples up."""
+    d, j = self.tree.query(moved_Nx3, distance_upper_bound=truncate)
+    near = np.isfinite(d)
+    out = np.full(len(d), truncate)
+    out[near] = np.minimum(np.abs(np.sum((moved_Nx3[near] - self.points[j[near]])
+                                         * self.normals[j[near]], 1)), truncate)
+    return out
+
+  def icp(self, src_Kx3, motion, rounds: int, scales, settings: Settings):
+    """Gauss-Newton rounds of the robust point-to-plane (+ point-to-point) fit of src to pc2."""
+    rotation, translation = motion
+    for i in range(rounds):
+      scale = scales[min(i * len(scales) // rounds, len(scales) - 1)]
+      q = src_Kx3 @ rotation.T + translation
+      d, j = self.tree.query(q)  # one thread: threads cost more than a query of <= 4000 points
+      n = self.normals[j]
+      diff = q - self.points[j]
+      r = np.sum(diff * n, 1)
+      w = (d < 4 * scale) / (1 + (r / scale) ** 2) ** 2  # Geman-McClure, far matches left out
+      if w.sum() < 6:
+        break
+      jac = np.concatenate([_cross(q, n), n], 1)
+      h = jac.T @ (jac * w[:, None]) + 1e-6 * np.eye(6)
+      g = jac.T @ (w * r)
+      # The point-to-point rows, d(q_axis) / d(omega, t) = (q x e_axis, e_axis), summed in closed
+      # form: sum wp [[|q|^2 I - q q^T, [q]_x], [-[q]_x, I]] and sum wp (q x diff, diff).
+      wp = settings.point_weight * w
+      qw = q * wp[:, None]
+      h[:3, :3] += np.eye(3) * np.sum(qw * q) - q.T @ qw
+      skew = _skew(qw.sum(0))
+      h[:3, 3:] += skew
+      h[3:, :3] -= skew
+      h[3:, 3:] += np.eye(3) * wp.sum()
+      g[:3] += np.sum(_cross(qw, diff), 0)
+      g[3:] += wp @ diff
+      step = -np.linalg.solve(h, g)
+      d_rot = rigid.rotation_from_vector(step[:3])
+      rotation, translation = d_rot @ rotation, d_rot @ translation + step[3:]
+    start = src_Kx3 @ motion[0].T + motion[1]
+    if np.linalg.norm(src_Kx3 @ rotation.T + translation - start, axis=1).mean() > \
+        settings.max_shift or not np.all(np.isfinite(rotation)):
+      return motion
+    return rotation, translation
+
+
+def _sample_fits(src_Nx3, dst_Nx3, picks_Tx3):
+  """The Kabsch motions (R T x 3 x 3, t T x 3) of T samples of three correspondences each."""
+  a, b = src_Nx3[picks_Tx3], dst_Nx3[picks_Tx3]
+  mu_a, mu_b = a.mean(1), b.mean(1)
+  cov = np.einsum("tki,tkj->tij", a - mu_a[:, None], b - mu_b[:, None])
+  rot = rigid.kabsch_rotation(cov)
+  return rot, mu_b - np.einsum("tij,tj->ti", rot, mu_a)
+
+
+def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None) -> list:
+  """Sequential local RANSAC on p -> p + flow: [(rotation, translation, inlier indices)].
+  `nbr_NxK`: each point's `settings.local` nearest (searched when not given). A hypothesis's
+  `trials` samples are drawn and scored at once."""
+  target = pc1_Nx3 + flow_Nx3
+  if nbr_NxK is None:
+    _, nbr_NxK = cKDTree(pc1_Nx3).query(pc1_Nx3, min(settings.local, len(pc1_Nx3)), workers=-1)
+  remaining, found = np.arange(len(pc1_Nx3)), []
+  while len(remaining) >= settings.min_support and len(found) < settings.max_bodies:
+    left = np.zeros(len(pc1_Nx3), bool)
+    left[remaining] = True
+    near_TxK = nbr_NxK[rng.choice(remaining, settings.trials)]
+    usable_TxK = left[near_TxK]
+    # Three distinct neighbours still left, uniformly: the three smallest random keys.
+    keys = np.where(usable_TxK, rng.random(near_TxK.shape), np.inf)
+    order = np.argsort(keys, axis=1)[:, :3]
+    ok = usable_TxK.sum(1) >= 3
+    if not ok.any():
+      break
+    picks = np.take_along_axis(near_TxK, order, 1)[ok]
+    rot, trans = _sample_fits(pc1_Nx3, target, picks)
+    moved = pc1_Nx3[remaining] @ rot.transpose(0, 2, 1) + trans[:, None]  # T x N x 3 (BLAS)
+    counts = (np.sum((moved - target[remaining]) ** 2, -1) < settings.inlier**2).sum(1)
+    best = int(np.argmax(counts))  # the first of the most supported
+    if counts[best] < settings.min_support:
+      break
+    best = rigid.Motion(rot[best], trans[best])
+    for _ in range(3):  # refit to the inliers
+      inliers = remaining[np.linalg.norm(best.apply(pc1_Nx3[remaining]) - target[remaining],
+                                         axis=1) < settings.inlier]
+      if len(inliers) < 3:
+        break
+      best = rigid.kabsch(pc1_Nx3[inliers], target[inliers])
+    found.append((best.rotation, best.translation, inliers))
+    remaining = np.setdiff1d(remaining, inliers)
+  return found
+
+
+def _subset(indices, most: int, rng):
+  return indices if len(indices) <= most else np.sort(rng.choice(indices, most, replace=False))
+
+
+def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
+  """(flow N x 3 float32, Found): `flow_Nx3` made piecewise rigid where rigid motions fit pc2
+  (module docstring). A flow that is not finite, or too few points, is returned unchanged with a
+  note."""
+  pc1, pc2 = np.asarray(pc1_Nx3, np.float64), np.asarray(pc2_Mx3, np.float64)
+  flow = np.asarray(flow_Nx3, np.float64)
+  if not np.all(np.isfinite(flow)) or not np.all(np.isfinite(pc1)) or \
+      not np.all(np.isfinite(pc2)):
+    return flow.astype(np.float32), Found(0, len(pc1), "bodies: a non-finite input; the flow is "
+                                                      "returned unchanged")
+  if min(len(pc1), len(pc2)) < max(settings.min_support, 10):
+    return flow.astype(np.float32), Found(0, len(pc1), f"bodies: {len(pc1)} and {len(pc2)} "
+                                          "points are too few for rigid bodies; the flow is "
+                                          "returned unchanged")
+  rng = np.random.default_rng(settings.seed)
+  sample = _subset(np.arange(len(pc1)), settings.sample, rng)
+  _, nbr_NxK = cKDTree(pc1).query(pc1, min(settings.neighbours, len(pc1)), workers=-1)
+  whole = len(sample) == len(pc1) and settings.local == settings.neighbours  # one search serves
+  found = hypotheses(pc1[sample], flow[sample], settings, rng, nbr_NxK if whole else None)
+  if not found:
+    return flow.astype(np.float32), Found(0, len(pc1), "bodies: no rigid motion has support; "
+                                                      "the flow is returned unchanged")
+  target = _Target(pc2)
+  bins = round(360 / settings.view_bin_deg), round(180 / settings.view_bin_deg)
+  view = View(pc2, "y", *bins, settings.hidden)  # the model frame: y up
+  normals1 = _normals(pc1)
+  coarse = (0.2, 0.1, 0.05, 0.03)
+  motions = [target.icp(pc1[sample[_subset(inl, settings.icp_points, rng)]], (r, t),
+                        settings.icp_rounds, coarse, settings) for r, t, inl in found]
+  motions += [(r, t) for r, t, _ in found]  # the unrefined motions stay candidates
+  # A body is contiguous: a point may take only a motion that a neighbour takes (at first, one
+  # whose hypothesis the neighbour supported in the starting flow).
+  label_N = np.full(len(pc1), -1)
+  for h, (_, _, inl) in enumerate(found):
+    label_N[sample[inl]] = h
+  label_N = np.where(label_N >= 0, label_N, len(found))  # unsupported: any motion
+  smooth = lambda per_point_N: per_point_N[nbr_NxK].mean(1)
+  start_cost = smooth(target.cost(pc1 + flow, settings.truncate))
+  every = np.arange(len(pc1))
+  for round_ in range(settings.em_rounds + 1):
+    held = np.zeros((len(pc1), len(found) + 1), bool)
+    held[every[:, None], label_N[nbr_NxK]] = True
+    allowed = held[:, np.arange(len(motions)) % len(found)] | held[:, -1:]
+    cost_NxH = np.full((len(pc1), len(motions)), np.inf)
+    choice_NxH = np.full_like(cost_NxH, np.inf)
+    cost_N, departure_N = np.empty(len(pc1)), np.empty(len(pc1))
+    for h, (r, t) in enumerate(motions):
+      # Costs only where the motion may be taken (the world's: everywhere, bodies join it), each
+      # the mean over the point's neighbours: those are the points whose cost is needed.
+      rows = every if h % len(found) == 0 else np.flatnonzero(allowed[:, h])
+      if not len(rows):
+        continue
+      need = every if len(rows) == len(pc1) else np.unique(nbr_NxK[rows])
+      moved = pc1[need] @ r.T + t
+      cost_N[need] = target.cost(moved, settings.truncate)
+      departure_N[need] = np.minimum(np.linalg.norm(moved - pc1[need] - flow[need], axis=1), 1.0)
+      cost_NxH[rows, h] = cost_N[nbr_NxK[rows]].mean(1)
+      choice_NxH[rows, h] = (cost_NxH[rows, h] + settings.pull * departure_N[nbr_NxK[rows]].mean(1)
+                             + settings.stick * (departure_N[rows] > settings.inlier)
+                             + settings.world * (h % len(found) != 0))
+    best_N = np.argmin(choice_NxH, 1)
+    best_N = _join_world(best_N, motions, len(found), pc1, normals1, target, view, settings)
+    label_N = best_N % len(found)
+    if round_ == settings.em_rounds:
+      break
+    motions = [target.icp(pc1[_subset(np.flatnonzero(best_N == h), settings.icp_points, rng)],
+                          m, 10, (0.05, 0.03), settings)
+               if (best_N == h).sum() >= 10 else m for h, m in enumerate(motions)]
+  rotations = np.stack([r for r, _ in motions])[best_N]
+  translations = np.stack([t for _, t in motions])[best_N]
+  out = np.einsum("nij,nj->ni", rotations, pc1) + translations - pc1
+  # Out of pc2's view, a good fit of the starting flow is a point dragged onto what pc2 saw.
+  free = (cost_NxH[np.arange(len(pc1)), best_N] > start_cost + settings.free_margin) & (
+    view.state(pc1 + out) != OUTSIDE)
+  out[free] = flow[free]
+  return out.astype(np.float32), Found(len(found), int(free.sum()))

@@ -1,0 +1,138 @@
+"""jaxflow/configs/sweep.py: the raw-sweep pipeline's settings, from Python (raw_sweep_flow,
+predict_flow) and from predict's command line (--sweep.FIELD, --print_config)."""
+
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from jaxflow import configfile, inference
+from jaxflow.configs import sweep as sweep_config
+from jaxflow.data import synthetic_sweep as ss
+from jaxflow.lidar import ego, sweep
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m.
+STILL = {"max_yaw_deg_per_s": 0.0, "search_per_s": 0.0}
+
+
+def test_the_per_second_settings_at_10_hz_are_the_per_frame_numbers():
+  config = sweep_config.get_config()
+  rate = config.frame_rate_hz
+  assert rate == 10.0 and config.max_range == 35.0
+  assert config.objects.search_per_s / rate == 3.5  # metres a frame
+  assert config.objects.max_yaw_deg_per_s / rate == 10.0  # degrees a frame
+  for field, frame in (("search_yaw_deg_per_s", np.arange(-6.0, 6.01, 1.0)),
+                       ("search_x_per_s", np.arange(-4.0, 4.01, 0.5)),
+                       ("search_y_per_s", np.arange(-1.5, 1.51, 0.5))):
+    lowest, highest, step = (v / rate for v in config.ego[field])
+    np.testing.assert_array_equal(np.arange(lowest, highest + step / 2, step), frame)
+    assert ego.search_grid(config.ego[field], rate).tobytes() == frame.tobytes()  # bit for bit
+  np.testing.assert_array_equal(ego.search_grid(config.ego.search_x_per_s, 20.0),
+                                np.arange(-2.0, 2.01, 0.25))  # a 20 Hz sensor: half as far
+
+
+@pytest.fixture(scope="module")
+def pair():
+  return ss.sweep_pair("val", 2, ss.Options(scale=0.2))  # ~21k points, 4 moving objects found
+
+
+def changed(frame_rate_hz=None, **objects):
+  config = sweep_config.get_config()
+  config.objects.update(objects)
+  if frame_rate_hz is not None:
+    config.frame_rate_hz = frame_rate_hz
+  return config
+
+
+@pytest.fixture(scope="module")
+def flows(pair):
+  """raw_sweep_flow's (flow, info) of the pair with the default settings and with STILL's."""
+  return {"default": sweep.raw_sweep_flow(None, pair.pc1, pair.pc2),
+          "still": sweep.raw_sweep_flow(None, pair.pc1, pair.pc2, settings=changed(**STILL))}
+
+
+def test_a_setting_changes_the_flow_through_the_api(pair, flows):
+  (flow, info), (still, still_info) = flows["default"], flows["still"]
+  assert len(info.objects.moved) >= 2 and info.settings == sweep_config.defaults()
+  assert still_info.settings.objects.max_yaw_deg_per_s == 0.0
+  assert len(still_info.objects.moved) < len(info.objects.moved)
+  assert np.abs(still - flow).max() > 1.0  # the movers' flows are gone
+  # At 1000 Hz the same per-second limits are 0.1 deg and 3.5 cm a frame: fewer objects move.
+  fast = sweep.raw_sweep_flow(None, pair.pc1, pair.pc2, settings=changed(1000.0))[1]
+  assert len(fast.objects.moved) < len(info.objects.moved)
+  predictor = inference.Predictor(None, None, None, False, method="optimise")  # predict_flow's
+  settings = changed(**STILL)
+  api = inference.predict_flow(pair.pc1, pair.pc2, predictor=predictor, lidar=True, up="z",
+                               sweep_settings=settings)
+  assert settings.objects.max_yaw_deg_per_s == 0.0  # read, not changed
+  np.testing.assert_array_equal(api, still)
+
+
+def predict(*args):
+  env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
+         "JAX_PLATFORMS": "cpu"}
+  return subprocess.Popen([sys.executable, "-m", "jaxflow.predict", *map(str, args)], env=env,
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, pair):
+  """predict's command lines, all at once: --lidar with and without --sweep overrides,
+  --print_config, an unknown field."""
+  d = tmp_path_factory.mktemp("sweeps")
+  np.save(d / "a.npy", pair.pc1)
+  np.save(d / "b.npy", pair.pc2)
+  lidar = (d / "a.npy", d / "b.npy", "--lidar")
+  procs = {
+    "default": predict(*lidar, "--out", d / "default.npy"),
+    "still": predict(*lidar, "--out", d / "still.npy",
+                     *(f"--sweep.objects.{k}={v}" for k, v in STILL.items())),
+    "print_config": predict("--print_config", "--sweep.objects.max_yaw_deg_per_s=5"),
+    "nope": predict(*lidar, "--out", d / "nope.npy", "--sweep.objects.nope=1"),
+  }
+  out = {k: (*p.communicate(timeout=600), p.returncode) for k, p in procs.items()}
+  return d, out
+
+
+@pytest.mark.slow  # it reads the `runs` fixture (every command line at once)
+def test_predict_sweep_flags_change_the_flow(runs, flows):
+  d, out = runs
+  for name in ("default", "still"):
+    assert out[name][2] == 0, out[name][1][-2000:]
+  default, still = np.load(d / "default.npy"), np.load(d / "still.npy")
+  assert np.abs(still - default).max() > 1.0
+  nothing = re.compile(r"\b0 of \d+ candidate objects move")
+  assert nothing.search(out["still"][1]) and not nothing.search(out["default"][1])
+  np.testing.assert_allclose(still, flows["still"][0], atol=1e-5)  # the flags are the settings
+  np.testing.assert_allclose(default, flows["default"][0], atol=1e-5)
+
+
+@pytest.mark.slow
+def test_print_config_lists_the_sweep_settings_with_units(runs):
+  stdout, stderr, rc = runs[1]["print_config"]
+  assert rc == 0, stderr[-2000:]
+  lines = [l for l in stdout.splitlines() if l.startswith("sweep.")]
+  fields = configfile.field_paths(sweep_config.get_config())
+  assert len(lines) == len(fields) > 50
+  assert any(l.startswith("config.eval.") for l in stdout.splitlines())  # and the first config
+  for field in fields:
+    (line,) = [l for l in lines if l.startswith(f"sweep.{field} = ")]
+    assert "  # " in line, line  # every field has its comment
+  assert ("sweep.objects.max_yaw_deg_per_s = 5.0  # deg/s: an object turning faster is refused"
+          in lines)  # the override applied
+  assert ("sweep.objects.search_per_s = 35.0  # m/s: an object's translation search, +- this"
+          in lines)
+  assert any(l.startswith("sweep.frame_rate_hz = 10.0  # ") for l in lines)
+
+
+@pytest.mark.slow
+def test_an_unknown_sweep_field_is_one_line_and_exit_2(runs):
+  _, stderr, rc = runs[1]["nope"]
+  assert rc == 2
+  errors = [l for l in stderr.splitlines() if l.startswith("error:")]
+  assert len(errors) == 1 and "--sweep.objects.nope=1" in errors[0], stderr
+  assert "Traceback" not in stderr
