@@ -217,6 +217,15 @@ def _parse_flags(argv: list[str], config_names=()) -> list[str]:
     for name in config_names:
       path = config_flags.get_config_filename(flags.FLAGS[name])
       text.append(configfile.describe(flags.FLAGS[name].value, path.split(":")[0], name) + "\n")
+    if "method" in flags.FLAGS:  # predict, evaluate.py: the method's settings as it would run
+      from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
+      try:
+        chosen = registry.settings(flags.FLAGS.method, flags.FLAGS.steps, flags.FLAGS.iters,
+                                   flags.FLAGS.objective)
+      except ConfigError as e:
+        fail(str(e))
+      if chosen is not None:
+        text.append(configfile.describe_settings(chosen, f"method.{flags.FLAGS.method}") + "\n")
     _write_and_exit("".join(text))
   from jaxflow import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)
   note = compile_cache.enable(flags.FLAGS.compilation_cache)  # (before anything compiles)

@@ -9,10 +9,13 @@ A `configs/NAME.py` that does not exist in the working directory is the package'
 """
 
 import ast
+import dataclasses
 import difflib
 import importlib.util
+import inspect
 import io
 import pathlib
+import re
 import tokenize
 
 import ml_collections
@@ -160,4 +163,40 @@ def describe(config, path=None, flag: str = "config") -> str:
       value = value[part]
     note = comment_of(field, comments)
     lines.append(f"{flag}.{field} = {value!r}" + (f"  # {note}" if note else ""))
+  return "\n".join(lines)
+
+
+def _field_comments(cls) -> dict[str, str]:
+  """{field: its comment} of a dataclass: the comment after the field, else the comment lines
+  right above it."""
+  comments, above = {}, []
+  for line in inspect.getsource(cls).splitlines():
+    text = line.strip()
+    if text.startswith("#"):
+      above.append(text.lstrip("# "))
+      continue
+    field = re.match(r"(\w+)\s*:[^#]*?(?:#\s*(.*))?$", text)
+    if field and not text.startswith(("def ", "class ", "@")):
+      note = field.group(2) or " ".join(above)
+      if note:
+        comments.setdefault(field.group(1), note)
+    above = []
+  return comments
+
+
+def describe_settings(settings, prefix: str) -> str:
+  """A settings dataclass (nested ones included) as `prefix.field = value  # comment` lines."""
+  lines = []
+
+  def walk(obj, path):
+    comments = _field_comments(type(obj))
+    for f in dataclasses.fields(obj):
+      value = getattr(obj, f.name)
+      if dataclasses.is_dataclass(value):
+        walk(value, f"{path}.{f.name}")
+      else:
+        note = comments.get(f.name)
+        lines.append(f"{path}.{f.name} = {value!r}" + (f"  # {note}" if note else ""))
+
+  walk(settings, prefix)
   return "\n".join(lines)

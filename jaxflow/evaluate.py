@@ -23,8 +23,9 @@ pair). Many processes: --coordinator, --num_processes, --process_id (jaxflow.dis
 
 import functools
 
-from jaxflow import cli, distributed, inference
+from jaxflow import cli, distributed
 from jaxflow.evaluation import evaluator, export, reporting
+from jaxflow.methods import registry
 
 
 def _define_flags():
@@ -56,7 +57,7 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   distributed.initialize_from_flags()
   config, model_fields = cli.run_settings(FLAGS.config)
-  chosen = inference.method_settings(FLAGS.method, FLAGS.steps, FLAGS.objective, FLAGS.iters)
+  chosen = registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective)
   on_batch = []
   if FLAGS.save_flows:
     on_batch.append(export.FlowSaver(FLAGS.save_flows).add)

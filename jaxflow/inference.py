@@ -36,7 +36,7 @@ from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
 from jaxflow.geometry import frames, ops
 from jaxflow.lidar import sweep
-from jaxflow.methods import registry, optimiser
+from jaxflow.methods import registry
 from jaxflow.network import checkpointing
 
 DEFAULT_METHOD = "optimise"  # the API's and predict's: the network's flow refined per pair
@@ -55,20 +55,6 @@ class Prediction:
   used: tuple = ()  # (pc1, pc2) points the method was given (after the lidar cut)
   sweep: object = None  # sweep.SweepInfo with lidar=True
   up: str = frames.MODEL_UP  # the up axis of the clouds (jaxflow.geometry.frames): the flow is in their frame
-
-
-def method_settings(method: str, steps: int | None = None, objective: str | None = None,
-                    iters: int | None = None):
-  """registry.settings(method, steps, iters), with NSFP's objective (exact or grid) when given."""
-  chosen = registry.settings(method, steps, iters if method == "optimise" else None)
-  if objective is None:
-    return chosen
-  if method != "nsfp":
-    raise ConfigError(f"--objective chooses NSFP's objective: it needs --method nsfp, not {method}")
-  if objective not in optimiser.OBJECTIVES:
-    raise ConfigError(f"--objective must be one of {', '.join(optimiser.OBJECTIVES)}, "
-                      f"got {objective!r}")
-  return dataclasses.replace(chosen, objective=objective)
 
 
 def lopsided(n1: int, n2: int) -> str | None:
@@ -287,7 +273,7 @@ def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = N
   NSFP's, `iters` sets optimise's starting flow's iterations) with the model of a checkpoint
   (workdir, checkpoints folder or step folder; None: the shipped one; nsfp loads none).
   `model_fields`: checkpointing.load_for_inference."""
-  chosen = method_settings(method, steps, objective, iters)
+  chosen = registry.settings(method, steps, iters, objective)
   if method not in registry.NEEDS_NETWORK:
     return Predictor(None, None, ml_collections.ConfigDict({"model": {"knn": 1}}), False,
                      name="NSFP, no network", method=method, method_settings=chosen)

@@ -160,6 +160,26 @@ def test_print_config_lists_every_field_with_its_comment():
   assert "config.model.knn = 8  # neighbours of each point in its own cloud" in proc.stdout
 
 
+def test_print_config_lists_the_methods_settings_as_they_would_run():
+  """predict / evaluate.py --print_config: the chosen method's settings (every stage, nested),
+  --steps and --objective applied, with the dataclasses' comments; none for the network alone."""
+  runs = {m: python("-m", "jaxflow.predict", "--print_config", "--method", m, *extra) for m, extra
+          in (("optimise", ["--steps", "30"]), ("nsfp", ["--objective", "grid"]),
+              ("network", []))}
+  runs["evaluate"] = python("evaluate.py", "--print_config", "--steps", "7")
+  assert all(p.returncode == 0 for p in runs.values()), {m: p.stderr[-500:] for m, p in runs.items()}
+  lines = runs["optimise"].stdout.splitlines()
+  assert "method.optimise.descent.steps = 30  # at most" in lines
+  assert "method.optimise.rigid_steps = 30" in lines and "method.optimise.polish.steps = 30  # at most" in lines
+  assert any(l.startswith("method.optimise.bodies.inlier = 0.08  # metres") for l in lines)
+  assert "method.nsfp.objective = 'grid'" in runs["nsfp"].stdout.splitlines()
+  assert "method." not in runs["network"].stdout and "config.eval." in runs["network"].stdout
+  assert "method.network" not in runs["evaluate"].stdout  # evaluate.py's default: the network
+  proc = python("-m", "jaxflow.predict", "--print_config", "--method", "optimise", "--objective",
+                "grid")
+  assert_one_line_error(proc, "--objective", "--method nsfp")
+
+
 def test_print_config_and_help_of_train_py_answer_without_loading_jax():
   for flag in ("--print_config", "--help"):
     proc = python(script=textwrap.dedent(f"""

@@ -12,8 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow import inference
-from jaxflow.methods import registry, optimiser, rigid_clusters
+from jaxflow.methods import optimiser, registry, rigid_clusters
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -29,7 +28,7 @@ def test_nsfp_recovers_a_rigid_motion():
   pc1 = rng.uniform(-2, 2, (128, 3)).astype(np.float32)
   gt = pc1 @ _rotation(0.05).T + [0.3, -0.1, 0.2] - pc1
   pc2 = (pc1 + gt)[rng.permutation(128)]  # the same points moved, in another order
-  chosen = inference.method_settings("nsfp", steps=600, objective="exact")
+  chosen = registry.settings("nsfp", steps=600, objective="exact")
   flow, info = registry.flow_fn("nsfp", chosen=chosen, with_info=True)(None, pc1[None], pc2[None])
   flow, info = np.asarray(flow[0]), {k: np.asarray(v)[0] for k, v in info.items()}
   assert np.mean(np.linalg.norm(flow - gt, axis=1)) < 0.02  # zero flow is 0.37 m off

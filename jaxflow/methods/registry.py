@@ -60,18 +60,25 @@ class Optimise:
   bodies: "bodies.Settings | None" = bodies.Settings()  # (a string: the field hides the module)
 
 
-def settings(method: str, steps: int | None = None, iters: int | None = None):
+def settings(method: str, steps: int | None = None, iters: int | None = None,
+             objective: str | None = None):
   """The default settings of a method (None for `network`); `steps` caps the optimiser's steps
   (optimise's rigid-bodies stage counts none: it runs whatever `steps`); `iters`: the network's
-  iterations for optimise's starting flow."""
+  iterations for optimise's starting flow; `objective`: NSFP's (exact or grid)."""
   if method not in METHODS:
     raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+  if objective is not None and method != "nsfp":
+    raise ConfigError(f"--objective chooses NSFP's objective: it needs --method nsfp, not {method}")
   if method == "network":
     return None
   if steps is not None and steps < 0:
     raise ConfigError(f"--steps must be >= 0, got {steps}")
   if method == "nsfp":
-    return NSFP if steps is None else dataclasses.replace(NSFP, steps=steps)
+    if objective is not None and objective not in optimiser.OBJECTIVES:
+      raise ConfigError(f"--objective must be one of {', '.join(optimiser.OBJECTIVES)}, "
+                        f"got {objective!r}")
+    return dataclasses.replace(NSFP, **({} if steps is None else {"steps": steps}),
+                               **({} if objective is None else {"objective": objective}))
   chosen = Optimise()
   if iters is not None:
     if iters < 1:
