@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from jaxflow.data import open_dataset
+from jaxflow.errors import ConfigError
 from jaxflow.geometry import frames
 from jaxflow.lidar import ground
 
@@ -62,6 +63,22 @@ def test_rotations_are_proper_and_invert():
   # z up (x forward, y left, z up) -> (x left, y up, z forward): OpenSceneFlow's TO_CAMERA order.
   np.testing.assert_array_equal(frames.to_model(np.array([[1.0, 2, 3]]), "z"), [[2.0, 3, 1]])
   np.testing.assert_array_equal(frames.rotation("y"), np.eye(3))
+
+
+def test_permutation_to_a_z_up_frame_and_the_up_index():
+  """The sweeps' z-up frame (x forward, y left, z up) from each up axis, as written out by hand:
+  y up (x left, y up, z forward) gives (z, x, y); x up (x up, y forward, z left) gives (y, z, x)."""
+  assert frames.permutation("z", "z") == [0, 1, 2]
+  assert frames.permutation("y", "z") == [2, 0, 1]
+  assert frames.permutation("x", "z") == [1, 2, 0]
+  assert frames.permutation("z") == [1, 2, 0]  # to the model frame: left, up, forward
+  for up in frames.UP_AXES:  # to a frame and back: the identity
+    there, back = frames.permutation(up, "z"), frames.permutation("z", up)
+    assert [there[i] for i in back] == [0, 1, 2]
+    assert np.linalg.det(np.eye(3)[there]) == 1.0  # a rotation, never a mirror
+  assert [frames.up_index(u) for u in "xyz"] == [0, 1, 2]
+  with pytest.raises(ConfigError, match="up must be one of x, y, z, got 'w'"):
+    frames.up_index("w")
 
 
 def _check_turns_left(pair, up_axis: int, where: str):

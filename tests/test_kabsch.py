@@ -3,6 +3,7 @@
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxflow.geometry import rigid
 from jaxflow.methods import rigid_clusters
@@ -57,3 +58,21 @@ def test_fit_recovers_each_clusters_motion_with_the_same_kabsch():
   cov = rng.normal(size=(5, 3, 3))
   np.testing.assert_allclose(np.asarray(rigid.kabsch_rotation(jnp.asarray(cov))),
                              rigid.kabsch_rotation(cov), atol=1e-5)
+
+
+def test_motion_inverse_composition_frame_and_rotation_vector():
+  """The motion algebra against applying the matrices by hand, and scipy's rotation vector
+  against Rodrigues' closed form."""
+  rng = np.random.default_rng(3)
+  x = rng.uniform(-30, 30, (50, 3))
+  a = rigid.Motion.of(rotation([0, 0, 1], 0.3), [1.0, -2.0, 0.5])
+  b = rigid.Motion.of(rotation([1, 2, 0], -0.2), [0.0, 0.4, -1.0])
+  np.testing.assert_allclose(a.inverse().apply(a.apply(x)), x, atol=1e-12)
+  np.testing.assert_allclose(a.then(b).apply(x), (x @ a.rotation.T + a.translation)
+                             @ b.rotation.T + b.translation, atol=1e-12)
+  p = np.eye(3)[[2, 0, 1]]  # a cyclic axis permutation (a rotation)
+  np.testing.assert_allclose(a.in_frame(p).apply(x @ p.T), a.apply(x) @ p.T, atol=1e-12)
+  assert a.angle_deg == pytest.approx(np.degrees(0.3))
+  axis = np.array([1.0, 2.0, 2.0]) / 3.0
+  np.testing.assert_allclose(rigid.rotation_from_vector(0.7 * axis), rotation(axis, 0.7),
+                             atol=1e-12)
