@@ -1,8 +1,8 @@
 """Shared command-line wrapper: a user's mistake is one line on stderr and exit code 2.
 
-    from jaxflow import cli cli.run(main)              # absl: checks the config flags, parses, then
-    main(argv) cli.guard(main, args)      # any other parser: calls main(args) with the same error
-    handling
+    from jaxflow import cli
+    cli.run(main)              # absl: checks the config flags, parses, then main(argv)
+    cli.guard(main, args)      # any other parser: calls main(args) with the same error handling
 
 `jaxflow.errors.JaxflowError` (bad file, argument, checkpoint, non-finite training), absl flag
 errors, a config file that does not load and a `--config.FIELD` that names no field print

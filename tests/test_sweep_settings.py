@@ -72,6 +72,17 @@ def test_a_setting_changes_the_flow_through_the_api(pair, flows):
   np.testing.assert_array_equal(api, still)
 
 
+def test_a_ground_setting_reaches_every_ground_mask(pair, flows):
+  """ground.margin (the surfaces carry it): more points are ground in both sweeps, and the
+  masks the pictures draw are those counted."""
+  config = sweep_config.get_config()
+  config.ground.margin = 0.6
+  _, wide = sweep.raw_sweep_flow(None, pair.pc1, pair.pc2, settings=config)
+  default = flows["default"][1]
+  assert wide.ground[0] > default.ground[0] and wide.ground[1] > default.ground[1]
+  assert [int(m.sum()) for m in wide.ground_masks] == list(wide.ground)
+
+
 def predict(*args):
   env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
          "JAX_PLATFORMS": "cpu"}

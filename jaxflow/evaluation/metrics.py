@@ -45,10 +45,9 @@ def scene_flow_metrics(pred_BxNx3, gt_BxNx3, mask_BxN=None) -> dict:
   return {k: jnp.mean(v) for k, v in per_pair_metrics(pred_BxNx3, gt_BxNx3, mask_BxN).items()}
 
 
-# OpenSceneFlow's LOCAL reading of the three-way EPE (its v1 table): a 35 m
-# disc (the reader's max_range cut) and per-pair means averaged over pairs. The official AV2 numbers
-# (a 70 x 70 m Close box, every point weighted equally over the split) are
-# jaxflow.evaluation.av2_eval.
+# OpenSceneFlow's LOCAL reading of the three-way EPE (its v1 table): a 35 m disc (the reader's
+# max_range cut) and per-pair means averaged over pairs. The official AV2 numbers (a 70 x 70 m
+# Close box, every point weighted equally over the split) are jaxflow.evaluation.av2_eval.
 THREE_WAY = ("fd", "fs", "bs", "mean")
 DYNAMIC_THRESHOLD = 0.05  # metres: a point is dynamic when |gt - rigid flow| >= this
 

@@ -47,15 +47,16 @@ class Plane:
   """The plane normal . x + offset = 0, normal a unit vector pointing up."""
   normal: np.ndarray  # 3
   offset: float
-  inliers: int = 0  # candidate points within the settings' inlier distance of it
+  inliers: int  # candidate points within the settings' inlier distance of it
+  margin: float  # metres above the plane still ground (the settings' margin when fitted)
 
   def height(self, points_Nx3) -> np.ndarray:
     return np.asarray(points_Nx3, np.float64) @ self.normal + self.offset
 
   def ground(self, points_Nx3, margin: float | None = None) -> np.ndarray:
-    """Bool N: points below `margin` (default the settings' margin, 0.25 m) above the plane
+    """Bool N: points below `margin` (default the plane's: its settings' margin) above the plane
     (points under it too: noise, kerbs)."""
-    return self.height(points_Nx3) < (_settings(None).margin if margin is None else margin)
+    return self.height(points_Nx3) < (self.margin if margin is None else margin)
 
   @property
   def tilt_deg(self) -> float:
@@ -122,7 +123,8 @@ def fit_ground(points_Nx3, up: str = "z",
     if near.sum() < 3:
       break
     normal, offset = _refit(cand[near], up_vector)
-  return Plane(normal, offset, int((np.abs(cand @ normal + offset) < inlier).sum()))
+  return Plane(normal, offset, int((np.abs(cand @ normal + offset) < inlier).sum()),
+               settings.margin)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,6 +136,7 @@ class Surface:
   origin: np.ndarray  # 2: (u, v) of the corner of cell (0, 0)
   coef_HxWx3: np.ndarray
   supported_HxW: np.ndarray
+  margin: float  # metres above the ground still ground (the settings' margin when fitted)
 
   def _split(self, points_Nx3):
     p = np.asarray(points_Nx3, np.float64)
@@ -152,8 +155,9 @@ class Surface:
     return h - (a * uv[:, 0] + b * uv[:, 1] + c)
 
   def ground(self, points_Nx3, margin: float | None = None) -> np.ndarray:
-    """Bool N: points below `margin` (default the settings' margin, 0.25 m) above the ground."""
-    return self.height(points_Nx3) < (_settings(None).margin if margin is None else margin)
+    """Bool N: points below `margin` (default the surface's: its settings' margin) above the
+    ground."""
+    return self.height(points_Nx3) < (self.margin if margin is None else margin)
 
   @property
   def sensor_height(self) -> float:
@@ -246,7 +250,7 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
     coef, supported = new, done
     if not grown:
       break
-  surface = Surface(k, cell, origin, coef, supported)
+  surface = Surface(k, cell, origin, coef, supported, settings.margin)
   # The lowest points lie low by the noise: refit each window to the mean of every point near the
   # surface (|height| < surface_near), weighted by their count.
   for _ in range(2):
@@ -262,7 +266,7 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
       take = ok & ~done
       new[take] = fitted[take]
       done |= take
-    surface = Surface(k, cell, origin, new, supported)
+    surface = Surface(k, cell, origin, new, supported, settings.margin)
   return surface
 
 
@@ -274,7 +278,7 @@ def find_ground(points_Nx3, up: str = "z", name: str = "points",
   settings = _settings(settings)
   plane = fit_ground(points_Nx3, up, settings.plane_range, name=name, settings=settings)
   surface = fit_surface(points_Nx3, up, plane, name, settings=settings)
-  return surface, surface.ground(points_Nx3, settings.margin)
+  return surface, surface.ground(points_Nx3)
 
 
 def check_ground(surface: Surface, ground_N, name: str, up: str, points_Nx3=None,

@@ -149,8 +149,8 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
     inverse = fit.motion.inverse()
     both = np.concatenate([pc1, inverse.apply(pc2)])
     surface = ground.fit_surface(both, "z", None, names[0], settings=settings.ground)
-    g1 = surface.ground(pc1, settings.ground.margin)
-    g2 = surface.ground(inverse.apply(pc2), settings.ground.margin)
+    g1 = surface.ground(pc1)
+    g2 = surface.ground(inverse.apply(pc2))
   if moving_objects:
     flow, found = objects.object_flow(pc1, pc2, g1, g2, fit.motion, surface, start_flow, seed,
                                       settings.objects, settings.ego, rate)
