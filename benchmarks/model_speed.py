@@ -1,9 +1,12 @@
 """Forward time of the network (and optionally one training step) on whatever device JAX finds.
 
     python -m benchmarks.model_speed --points 8192 --iters 32 --configs default_full,pvraft
+    python -m benchmarks.model_speed --configs pvraft --train --train-points 2048
 
-Times are medians over --repeats runs after one compile run; the device, jax version and peak
-device memory (where the backend reports it) are printed with them.
+Times are medians over --repeats runs after one compile run; the device, jax version, XLA's
+temporary memory of the compiled program (memory_analysis: exact, load-independent) and peak
+device memory (where the backend reports it) are printed with them. --train adds a training step
+(--train-batch pairs of --train-points points, --train-iters iterations, sequence loss, Adam).
 """
 
 import argparse
@@ -36,6 +39,11 @@ def timed(fn, *args, repeats):
   return float(np.median(times))
 
 
+def temp_mib(jitted, *args):
+  """XLA's temporary buffers of the compiled program, MiB."""
+  return jitted.lower(*args).compile().memory_analysis().temp_size_in_bytes / 2**20
+
+
 def device_line():
   dev = jax.devices()[0]
   return (f"device: {dev.device_kind} ({dev.platform}), jax {jax.__version__}, "
@@ -66,7 +74,11 @@ def main():
   parser.add_argument("--iters", type=int, default=32)
   parser.add_argument("--configs", default="default_full,pvraft")
   parser.add_argument("--repeats", type=int, default=3)
-  parser.add_argument("--train", action="store_true", help="also time a batch-2, 8-iteration step")
+  parser.add_argument("--train", action="store_true", help="also time a training step")
+  parser.add_argument("--train-points", type=int, default=0, help="0: --points")
+  parser.add_argument("--train-batch", type=int, default=2)
+  parser.add_argument("--train-iters", type=int, default=8)
+  parser.add_argument("--inference", type=int, default=1, help="0: time the training step only")
   parser.add_argument("--corr-chunk", type=int, default=0)
   parser.add_argument("--precision", default=None, help="model.precision (default: the config's)")
   args = parser.parse_args()
@@ -81,31 +93,41 @@ def main():
     model = build_model(cfg)
     pc1 = jnp.asarray(rng.uniform(-10, 10, (1, args.points, 3)), jnp.float32)
     pc2 = pc1 + 0.1
-    variables = jax.jit(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, num_iters=1))(pc1, pc2)
-    forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters))
-    t = timed(forward, variables, pc1, pc2, repeats=args.repeats)
-    mem = peak_memory_gib()
-    print(f"{name:>13} ({cfg.precision}): inference 1 pair x {args.points} points x {args.iters} iters: "
-          f"{1e3 * t:9.1f} ms" + (f", peak {mem:.2f} GiB" if mem is not None else ""))
+    variables = jax.jit(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, num_iters=1))(
+      pc1[:, :64], pc2[:, :64])
+    if args.inference:
+      forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters))
+      mem = temp_mib(forward, variables, pc1, pc2)
+      t = timed(forward, variables, pc1, pc2, repeats=args.repeats)
+      peak = peak_memory_gib()
+      print(f"{name:>13} ({cfg.precision}): inference 1 pair x {args.points} points x "
+            f"{args.iters} iters: {1e3 * t:9.1f} ms, {mem:.0f} MiB temp"
+            + (f", peak {peak:.2f} GiB" if peak is not None else ""), flush=True)
     if args.train:
+      points, batch = args.train_points or args.points, args.train_batch
       tx = optax.adam(1e-3)
       opt = tx.init(variables["params"])
-      b1 = jnp.concatenate([pc1, pc1 + 1.0])
+      one = jnp.asarray(rng.uniform(-10, 10, (1, points, 3)), jnp.float32)
+      b1 = jnp.concatenate([one + i for i in range(batch)])
       b2 = b1 + 0.1
       gt = jnp.full(b1.shape, 0.1)
 
+      # The clouds are arguments: as constants, XLA would fold their kNN graphs at compile time.
       @jax.jit
-      def step(params, opt):
+      def step(params, opt, b1, b2, gt):
         def loss_fn(p):
-          flows = model.apply({"params": p}, b1, b2, num_iters=8, refine=False)["flows"]
+          flows = model.apply({"params": p}, b1, b2, num_iters=args.train_iters,
+                              refine=False)["flows"]
           return losses.sequence_loss(flows, gt)
         loss, grads = jax.value_and_grad(loss_fn)(params)
         updates, opt = tx.update(grads, opt, params)
         return optax.apply_updates(params, updates), opt, loss
 
-      t = timed(lambda p, o: step(p, o)[2], variables["params"], opt, repeats=args.repeats)
-      print(f"{name:>13}: train step batch 2 x {args.points} points x 8 iters: {1e3 * t:9.1f} ms "
-            f"({2 / t:.2f} pairs/s)")
+      batch_args = (variables["params"], opt, b1, b2, gt)
+      mem = temp_mib(step, *batch_args)
+      t = timed(lambda *a: step(*a)[2], *batch_args, repeats=args.repeats)
+      print(f"{name:>13}: train step batch {batch} x {points} points x {args.train_iters} iters: "
+            f"{1e3 * t:9.1f} ms, {mem:.0f} MiB temp ({batch / t:.2f} pairs/s)", flush=True)
 
 
 if __name__ == "__main__":

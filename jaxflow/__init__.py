@@ -4,7 +4,7 @@ The package, lowest layer first (a module imports its own package and the layers
 tests/test_imports.py checks this):
 
     errors, configs, configfile, determinism, compile_cache, distributed   shared helpers
-    geometry/     neighbours, rigid motions, frames, visibility
+    geometry/     neighbours, rigid motions, registration, frames, visibility
     data/         datasets, point files, sampling, batching
     network/      the model, its layers, checkpoints
     methods/      per-pair methods (network, nsfp, optimise) and their objectives

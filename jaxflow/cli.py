@@ -96,6 +96,37 @@ def _write_and_exit(text: str):
   sys.exit(0)
 
 
+_METHOD_FIELDS = {}  # the command line's --method.NAME.FIELD=V: {(NAME, FIELD): V}
+
+
+def take_method_fields(argv: list[str]) -> list[str]:
+  """argv without its --method.NAME.FIELD=V arguments, which are kept for `method_fields`."""
+  kept, positional = [], False
+  for arg in argv:
+    if arg == "--":
+      positional = True
+    if positional or not arg.startswith("--method."):
+      kept.append(arg)
+      continue
+    name, eq, value = arg[2:].partition("=")
+    parts = name.split(".")
+    if not eq or len(parts) < 3 or not all(parts):
+      fail(f"{arg}: a method's setting is --method.METHOD.FIELD=VALUE, e.g. "
+           "--method.optimise.descent.steps=300 (--print_config lists the fields)")
+    _METHOD_FIELDS[(parts[1], ".".join(parts[2:]))] = value
+  return kept
+
+
+def method_fields(method: str) -> dict:
+  """{field: value} of the command line's --method.METHOD.FIELD=V (a ConfigError when they name
+  another method than --method)."""
+  other = sorted({m for m, _ in _METHOD_FIELDS if m != method})
+  if other:
+    raise ConfigError(f"--method.{other[0]}.* sets the {other[0]} method's settings, but the "
+                      f"method is {method} (--method {other[0]} to run it)")
+  return {field: value for (_, field), value in _METHOD_FIELDS.items()}
+
+
 def check_renamed(argv: list[str], renamed: dict[str, str]):
   """fail() naming the new flag when argv spells a renamed or hyphenated one."""
   for arg in argv[1:]:
@@ -221,7 +252,7 @@ def _parse_flags(argv: list[str], config_names=()) -> list[str]:
       from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
       try:
         chosen = registry.settings(flags.FLAGS.method, flags.FLAGS.steps, flags.FLAGS.iters,
-                                   flags.FLAGS.objective)
+                                   flags.FLAGS.objective, method_fields(flags.FLAGS.method))
       except ConfigError as e:
         fail(str(e))
       if chosen is not None:
@@ -247,6 +278,7 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
   """
   config_files = config_files or {}
   check_renamed(sys.argv, {**RENAMED, **(renamed or {})})
+  sys.argv = take_method_fields(sys.argv)
   try:
     for name, default in config_files.items():
       sys.argv = configfile.check_argv(sys.argv, name, default)
@@ -255,6 +287,8 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
   before = set(flags.FLAGS)
   if define_flags is not None:
     define_flags()
+  if _METHOD_FIELDS and "method" not in flags.FLAGS:
+    fail(f"--method.{'.'.join(next(iter(_METHOD_FIELDS)))}: this command has no --method")
   flags.DEFINE_bool("print_config", False, "Print the config (with the overrides given) field by "
                     "field, with each field's comment, and exit.")
   flags.DEFINE_bool("deterministic", False, "Run-to-run identical results on a GPU too (XLA's "

@@ -200,3 +200,65 @@ def describe_settings(settings, prefix: str) -> str:
 
   walk(settings, prefix)
   return "\n".join(lines)
+
+
+def _setting_value(text, current, flag: str, nullable: bool):
+  """`text` (a command line's string, or a value from Python) as the type of `current` (or None,
+  where the field may be none)."""
+  if not isinstance(text, str) or isinstance(current, str):
+    value = text
+  else:
+    try:
+      value = ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+      value = text  # a bare word: a string field's value, refused below for any other type
+  if value is None:
+    ok = nullable
+  elif isinstance(current, bool) or isinstance(value, bool):
+    ok = isinstance(value, bool) and (current is None or isinstance(current, bool))
+  elif isinstance(current, float):
+    ok = isinstance(value, (int, float))
+    value = float(value) if isinstance(value, int) else value
+  elif current is None:
+    ok = isinstance(value, (int, float, str))
+  else:
+    ok = isinstance(value, type(current))
+  if not ok:
+    kind = "None or " * nullable + type(current).__name__
+    raise ConfigError(f"{flag}: {text!r} is not {kind}, as its default {current!r}")
+  return value
+
+
+def replace_settings(settings, assignments: dict, prefix: str):
+  """A copy of a settings dataclass with `assignments` {dotted field: value} applied at any depth
+  (strings are parsed as Python literals of the field's type; None where a field may be none).
+  A name that is not a field, a value of another type, or one its dataclass refuses is a
+  ConfigError naming `prefix.field` and, for a wrong name, the fields there are."""
+
+  def put(obj, parts, value, flag):
+    names = [f.name for f in dataclasses.fields(obj)]
+    if parts[0] not in names:
+      near = difflib.get_close_matches(parts[0], names, 3)
+      raise ConfigError(f"{flag}: no field {parts[0]!r} in {type(obj).__name__} (fields: "
+                        f"{', '.join(near or names)})")
+    current = getattr(obj, parts[0])
+    nullable = "None" in str(next(f.type for f in dataclasses.fields(obj) if f.name == parts[0]))
+    if len(parts) > 1:
+      if not dataclasses.is_dataclass(current):
+        raise ConfigError(f"{flag}: {parts[0]!r} has no fields (it is {current!r})")
+      new = put(current, parts[1:], value, flag)
+    elif dataclasses.is_dataclass(current):
+      if not (nullable and value in (None, "None")):
+        raise ConfigError(f"{flag}: {parts[0]!r} is a block of settings: set its fields "
+                          f"({flag}.FIELD=V)" + (", or None to leave the stage out" * nullable))
+      new = None
+    else:
+      new = _setting_value(value, current, flag, nullable)
+    try:
+      return dataclasses.replace(obj, **{parts[0]: new})
+    except (ValueError, TypeError) as e:
+      raise ConfigError(f"{flag}: {e}") from None
+
+  for path, value in assignments.items():
+    settings = put(settings, path.split("."), value, f"{prefix}.{path}")
+  return settings

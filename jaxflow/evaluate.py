@@ -57,7 +57,8 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   distributed.initialize_from_flags()
   config, model_fields = cli.run_settings(FLAGS.config)
-  chosen = registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective)
+  chosen = registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective,
+                             cli.method_fields(FLAGS.method))
   on_batch = []
   if FLAGS.save_flows:
     on_batch.append(export.FlowSaver(FLAGS.save_flows).add)

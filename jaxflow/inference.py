@@ -268,12 +268,14 @@ def as_cloud(points, name, min_points: int) -> np.ndarray:
 
 def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = None,
                    model_fields=(), method: str = DEFAULT_METHOD, steps: int | None = None,
-                   objective: str | None = None, iters: int | None = None) -> Predictor:
+                   objective: str | None = None, iters: int | None = None,
+                   method_fields: dict | None = None) -> Predictor:
   """The Predictor of `method` (jaxflow.methods.registry; `steps` caps its optimiser, `objective` is
-  NSFP's, `iters` sets optimise's starting flow's iterations) with the model of a checkpoint
-  (workdir, checkpoints folder or step folder; None: the shipped one; nsfp loads none).
-  `model_fields`: checkpointing.load_for_inference."""
-  chosen = registry.settings(method, steps, iters, objective)
+  NSFP's, `iters` sets optimise's starting flow's iterations, `method_fields` sets any of its
+  settings, {"bodies.inlier": 0.1}) with the model of a checkpoint (workdir, checkpoints folder or
+  step folder; None: the shipped one; nsfp loads none). `model_fields`:
+  checkpointing.load_for_inference."""
+  chosen = registry.settings(method, steps, iters, objective, method_fields)
   if method not in registry.NEEDS_NETWORK:
     return Predictor(None, None, ml_collections.ConfigDict({"model": {"knn": 1}}), False,
                      name="NSFP, no network", method=method, method_settings=chosen)
@@ -296,8 +298,10 @@ def fresh_predictor(config: ml_collections.ConfigDict, seed: int = 0,
 
 
 @functools.lru_cache(maxsize=4)
-def _cached_predictor(checkpoint: str | None, method: str, steps, objective) -> Predictor:
-  return load_predictor(checkpoint, method=method, steps=steps, objective=objective)
+def _cached_predictor(checkpoint: str | None, method: str, steps, objective,
+                      method_fields: tuple) -> Predictor:
+  return load_predictor(checkpoint, method=method, steps=steps, objective=objective,
+                        method_fields=dict(method_fields))
 
 
 def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
@@ -306,15 +310,18 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
                  full: bool = False, corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
                  predictor: Predictor | None = None, lidar: bool = False, up: str | None = None,
                  max_range: float | None = None, ground_limits: bool = True,
-                 sweep_settings: ml_collections.ConfigDict | None = None) -> np.ndarray:
+                 sweep_settings: ml_collections.ConfigDict | None = None,
+                 method_fields: dict | None = None) -> np.ndarray:
   """Flow N x 3 (float32) of every point of pc1 towards pc2 by `method` (default DEFAULT_METHOD,
-  `optimise`, as `python -m jaxflow.predict`); the checkpoint (None: the shipped one) is loaded once
-  and kept. `predictor` (load_predictor / fresh_predictor) replaces checkpoint and method. The
-  Prediction's notes (non-convergence, a lopsided pair) are issued as warnings. `lidar=True`:
-  raw sweeps (the module docstring), tuned by `sweep_settings`."""
+  `optimise`, as `python -m jaxflow.predict`) with `method_fields` of its settings changed
+  (load_predictor); the checkpoint (None: the shipped one) is loaded once and kept. `predictor`
+  (load_predictor / fresh_predictor) replaces checkpoint and method. The Prediction's notes
+  (non-convergence, a lopsided pair) are issued as warnings. `lidar=True`: raw sweeps (the module
+  docstring), tuned by `sweep_settings`."""
   if predictor is None:
     predictor = _cached_predictor(None if checkpoint is None else str(checkpoint),
-                                  method or DEFAULT_METHOD, steps, objective)
+                                  method or DEFAULT_METHOD, steps, objective,
+                                  tuple(sorted((method_fields or {}).items())))
   elif method is not None and method != predictor.method:
     raise ConfigError(f"method={method!r} but the predictor given runs {predictor.method!r}")
   prediction = predictor.predict(pc1_Nx3, pc2_Mx3, num_iters=num_iters, max_points=max_points,

@@ -5,7 +5,7 @@ r"""Scene flow of your own point files (jaxflow-predict): the flow of every poin
     python -m jaxflow.predict PC1 PC2 --out FLOW.npy [--method optimise|network|nsfp]
         [--checkpoint PATH] [--config CONFIG] [--iters 32] [--max_points 8192 | --full
         [--corr_chunk 2048]] [--seed 0] [--steps N] [--objective exact|grid] [--render VIEW.png]
-        [--save_flows DIR]
+        [--save_flows DIR] [--method.optimise.descent.steps=300 ...]
 
 From Python: `jaxflow.inference.predict_flow(pc1_Nx3, pc2_Mx3, method=...)`, the same defaults.
 
@@ -20,8 +20,9 @@ output row.
 Method (--method, jaxflow.methods.registry, docs/methods.md): `optimise` (the default, also the
 Python API's) refines the network's flow against the whole clouds; `network` is the network alone
 (the paper's protocol, evaluate.py's default); `nsfp` is the NSFP baseline (no checkpoint;
---objective exact or grid). --steps N caps the optimisation steps. An optimisation that did not
-converge says so on stderr.
+--objective exact or grid). --steps N caps the optimisation steps; --method.METHOD.FIELD=V sets
+any of the method's settings (e.g. --method.optimise.bodies.inlier=0.1; --print_config lists
+them). An optimisation that did not converge says so on stderr.
 
 Cloud size (jaxflow.inference): clouds above --max_points (config.eval.num_points, 8192) are sampled
 and the flow mapped back to every PC1 point; --full (or --max_points 0) uses whole clouds, the
@@ -61,6 +62,7 @@ import sys
 from jaxflow import cli, inference
 from jaxflow.errors import ConfigError
 from jaxflow.evaluation import export, submission
+from jaxflow.methods import registry
 
 # --lidar's settings (jaxflow.lidar.sweep) when no --sweep file is given.
 SWEEP_CONFIG = str(pathlib.Path(__file__).absolute().parent / "configs" / "sweep.py")
@@ -119,6 +121,9 @@ def main(argv):
              f"{' '.join(argv[1:]) or '(none)'}")
   pc1_path, pc2_path = argv[1:]
   config, model_fields = cli.run_settings(FLAGS.config)
+  method = FLAGS.method, FLAGS.steps, FLAGS.objective, FLAGS.iters, cli.method_fields(FLAGS.method)
+  # A wrong --method.X.FIELD is said now, not when (if) the predictor loads.
+  registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective, method[-1])
   if not FLAGS.out and not FLAGS.save_flows and not FLAGS.submission:
     raise ConfigError("give --out FLOW.npy, --save_flows DIR or --submission DIR")
   out = pathlib.Path(FLAGS.out or "")
@@ -127,8 +132,7 @@ def main(argv):
 
   pc1, note1 = inference.read_cloud(pc1_path, FLAGS.columns)
   pc2, note2 = inference.read_cloud(pc2_path, FLAGS.columns)
-  load = (FLAGS.checkpoint, config, model_fields, FLAGS.method, FLAGS.steps, FLAGS.objective,
-          FLAGS.iters)
+  load = (FLAGS.checkpoint, config, model_fields, *method)
   # --lidar: the method runs on a camera's view, or as a start of the fits when --method is given;
   # a 360-degree sweep alone loads no checkpoint.
   predictor = (inference.DeferredPredictor(*load) if FLAGS.lidar else

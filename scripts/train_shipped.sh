@@ -10,9 +10,11 @@
 #   bash scripts/train_shipped.sh eval [DATA]  # the model card's tables (DATA: ../shared/data)
 #   POINTS=1024 bash scripts/train_shipped.sh eval [DATA]  # the same at the training density
 #   CHECKPOINT=runs/X EVAL_OUT=runs/X_eval bash scripts/train_shipped.sh eval  # another checkpoint
+#   SET_PAIRS=10 ... eval       # 10 pairs of each synthetic set instead of 50 (a quick check)
+#   NICE= ...                   # at normal priority (default nice -n 10)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-NICE="nice -n 10"  # the dev box's 2 cores are shared
+NICE=${NICE-nice -n 10}  # the dev box's 2 cores are shared
 PY=${PYTHON:-python}  # scripts/gpu_round.sh passes its interpreter (the GPU image has python3)
 
 if [[ "${1:-}" == "eval" ]]; then
@@ -24,7 +26,8 @@ if [[ "${1:-}" == "eval" ]]; then
   mkdir -p "$OUT"
   SETTINGS="--config.eval.num_points=$POINTS --config.eval.num_iters=32 --config.eval.batch_size=1"
   [[ -n "${CHECKPOINT:-}" ]] && SETTINGS+=" --checkpoint $CHECKPOINT"
-  SETS=("things synthetic_things:50 test" "lidar synthetic_lidar:50 test")
+  pairs=${SET_PAIRS:-50}
+  SETS=("things synthetic_things:$pairs test" "lidar synthetic_lidar:$pairs test")
   for entry in "ft3d FlyingThings3D_subset_processed_35m train" "kitti KITTI_processed_occ_final test"; do
     read -r name folder split <<< "$entry"
     if [[ -d "$DATA/$folder" ]]; then SETS+=("$name $name:$DATA/$folder $split")

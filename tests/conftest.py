@@ -12,7 +12,7 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED = pathlib.Path(os.environ.get("JAXFLOW_SHARED", ROOT.parent / "shared"))
 
-# Compiled programs are shared by the tests, their subprocesses and both xdist workers through jax's
+# Compiled programs are shared by the tests, their subprocesses and the xdist workers through jax's
 # persistent cache (the models of the tests are few; compiling them is most of the suite's time).
 # One cache per checkout (its path hashed): another clone's programs are never read.
 CACHE = os.environ.setdefault(
@@ -66,13 +66,14 @@ def smoke_checkpoint(tmp_path_factory):
 
 
 # The test files by their measured time, longest first (2-core CPU). With `--dist loadfile
-# --no-loadscope-reorder` (pyproject.toml) the two workers take the files in this order, so the
-# last files to start are short ones and both workers finish together (xdist's default order, by
+# --no-loadscope-reorder` (pyproject.toml) the workers take the files in this order, so the
+# last files to start are short ones and the workers finish together (xdist's default order, by
 # the number of tests in a file, left the few-test files of minutes each for the end).
 LONGEST_FIRST = (
   "test_methods.py", "test_distributed.py", "test_gpu_round.py", "test_docs.py", "test_model.py",
   "test_two_stage.py", "test_training.py", "test_resume.py", "test_predict.py",
-  "test_evaluation.py", "test_cli.py", "test_precision.py", "test_install.py", "test_ops.py",
+  "test_evaluation.py", "test_cli.py", "test_precision.py", "test_install.py",
+  "test_compile_cache.py", "test_ops.py",
   "test_search.py", "test_pvraft_fidelity.py", "test_gradients.py", "test_submission.py",
   "test_determinism.py", "test_viewer.py")
 

@@ -164,15 +164,19 @@ def test_print_config_lists_the_methods_settings_as_they_would_run():
   """predict / evaluate.py --print_config: the chosen method's settings (every stage, nested),
   --steps and --objective applied, with the dataclasses' comments; none for the network alone."""
   runs = {m: python("-m", "jaxflow.predict", "--print_config", "--method", m, *extra) for m, extra
-          in (("optimise", ["--steps", "30"]), ("nsfp", ["--objective", "grid"]),
-              ("network", []))}
+          in (("optimise", ["--steps", "30", "--method.optimise.bodies.inlier=0.1",
+                            "--method.optimise.clusters.search=device"]),
+              ("nsfp", ["--objective", "grid", "--method.nsfp.width=64"]), ("network", []))}
   runs["evaluate"] = python("evaluate.py", "--print_config", "--steps", "7")
   assert all(p.returncode == 0 for p in runs.values()), {m: p.stderr[-500:] for m, p in runs.items()}
   lines = runs["optimise"].stdout.splitlines()
   assert "method.optimise.descent.steps = 30  # at most" in lines
   assert "method.optimise.rigid_steps = 30" in lines and "method.optimise.polish.steps = 30  # at most" in lines
-  assert any(l.startswith("method.optimise.bodies.inlier = 0.08  # metres") for l in lines)
+  assert any(l.startswith("method.optimise.bodies.inlier = 0.1  # metres") for l in lines)
+  assert "method.optimise.clusters.search = 'device'" in [l.split("  #")[0] for l in lines]
+  assert "method.optimise.bodies.trials = 150  # RANSAC samples a hypothesis" in lines
   assert "method.nsfp.objective = 'grid'" in runs["nsfp"].stdout.splitlines()
+  assert "method.nsfp.width = 64" in [l.split("  #")[0] for l in runs["nsfp"].stdout.splitlines()]
   assert "method." not in runs["network"].stdout and "config.eval." in runs["network"].stdout
   assert "method.network" not in runs["evaluate"].stdout  # evaluate.py's default: the network
   proc = python("-m", "jaxflow.predict", "--print_config", "--method", "optimise", "--objective",
@@ -297,3 +301,33 @@ def test_old_flag_spellings_are_refused_naming_the_new_one():
     out, err = p.communicate(timeout=240)
     lines = err.strip().splitlines()
     assert p.returncode == 2 and lines == [f"error: {cases[args]}"], (args, err)
+
+
+def test_method_settings_are_replaced_field_by_field_with_their_types_checked():
+  """configfile.replace_settings, what --method.METHOD.FIELD=V and the API's method_fields use:
+  nested fields, strings parsed as the field's type, None only where a field may be none, and a
+  ConfigError naming the field for a wrong name, type or value."""
+  from jaxflow.errors import ConfigError  # pylint: disable=import-outside-toplevel
+  from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
+
+  default = registry.settings("optimise")
+  got = configfile.replace_settings(default, {"descent.steps": "300", "bodies.inlier": "0.1",
+                                              "rigid_learning_rate": "1", "choose": "False",
+                                              "start_iters": "None"}, "method.optimise")
+  assert (got.descent.steps, got.bodies.inlier, got.rigid_learning_rate, got.choose,
+          got.start_iters) == (300, 0.1, 1.0, False, None)
+  assert isinstance(got.rigid_learning_rate, float) and got.polish == default.polish
+  assert configfile.replace_settings(default, {"bodies": "None"}, "m").bodies is None
+  assert registry.settings("optimise", steps=30, fields={"polish.steps": 3}).polish.steps == 3
+  for fields, words in (({"descent.stepz": "3"}, ["method.optimise.descent.stepz", "steps"]),
+                        ({"descent.steps": "0.5"}, ["descent.steps", "not int", "400"]),
+                        ({"descent": "None"}, ["block of settings"]),
+                        ({"descent.objective": "gird"}, ["descent.objective", "exact, grid"]),
+                        ({"bodies.trials": "0"}, ["bodies.trials", ">= 1"]),
+                        ({"choose": "1"}, ["not bool"]),
+                        ({"start_iters.x": "1"}, ["has no fields"])):
+    with pytest.raises(ConfigError) as e:
+      registry.settings("optimise", fields=fields)
+    assert all(w in str(e.value) for w in words), (fields, str(e.value))
+  with pytest.raises(ConfigError, match="network has no settings"):
+    registry.settings("network", fields={"steps": 3})

@@ -100,8 +100,10 @@ def test_eval_measures_round_and_shipped_on_the_same_val_pairs(tmp_path):
   (fake / "python").chmod(0o755)
   data = SHARED / "data"
   # The round is the shipped checkpoint itself, so both deciding numbers must agree exactly.
+  # At the suite's priority (the script's own `nice` starved it behind the other workers) and on
+  # 12 pairs of each synthetic set instead of 50.
   proc = gpu_round(tmp_path, "eval", str(data), WORK=str(checkpointing.SHIPPED_CHECKPOINT),
-                   POINTS="64", DECIDE="synthetic_mix:2",
+                   POINTS="64", DECIDE="synthetic_mix:2", SET_PAIRS="12", NICE="",
                    PATH=f"{fake}{os.pathsep}{os.environ['PATH']}")
   assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
   decide = {who: json.loads((tmp_path / "eval" / f"decide_val_{who}.json").read_text())
@@ -124,10 +126,11 @@ def test_eval_measures_round_and_shipped_on_the_same_val_pairs(tmp_path):
     # Zero flow's relative error is ~100% at every moving point: all are outliers (> 10%), but for
     # the odd static one (|flow| < 1e-5 m); the network's outliers are 73-97% (MODEL_CARD.md).
     assert zero["outliers"] >= 99.5, (name, zero)
-    if name in ("things", "lidar"):  # the 50 held-out pairs of the sets the network learnt:
-      # it beats zero flow there even at 64 points (measured: 0.96 / 0.64 m against 1.20 / 0.97
-      # m; not on the real KITTI frame at 64 points, 0.51 against 0.37 m)
-      assert network["pairs"] == 50 and network["epe"] < 0.9 * zero["epe"], (name, network, zero)
+    if name in ("things", "lidar"):  # held-out pairs of the sets the network learnt: it beats
+      # zero flow there even at 64 points (measured on 50: 0.96 / 0.64 m against 1.20 / 0.97 m;
+      # on 12: 0.88 / 0.64 m against 1.11 / 0.99 m; not on the real KITTI frame at 64 points,
+      # 0.51 against 0.37 m)
+      assert network["pairs"] == 12 and network["epe"] < 0.9 * zero["epe"], (name, network, zero)
   with tarfile.open(tmp_path / "out" / "gpu_round_eval.tgz") as tar:
     packed = {Path(name).name for name in tar.getnames()}
   assert {"decide_val_round.json", "decide_val_shipped.json", "things.json"} <= packed

@@ -9,7 +9,8 @@ import numpy_reference as ref
 from jaxflow.evaluation import metrics
 from jaxflow.geometry import ops
 from jaxflow.network import layers
-from jaxflow.network.correlation import PointVoxelCorrelation, truncated_correlation, voxel_means
+from jaxflow.network.correlation import (PointVoxelCorrelation, planar, truncated_correlation,
+                                         voxel_means)
 from jaxflow.network.layers import GCL, SetConv
 from jaxflow.network.update import GRUCell, SingleGateCell
 from jaxflow.training import losses
@@ -183,7 +184,9 @@ def test_voxel_cells_form_follows_the_device_it_is_compiled_for():
 def test_point_branch_matches_loop(seed):
   corr, cand, coords = correlation_inputs(seed)
   module = PointVoxelCorrelation(knn=8, levels=3)
-  args = (jnp.asarray(corr)[None], jnp.asarray(cand)[None], jnp.asarray(coords)[None])
+  # The module takes the candidates as three planes (correlation.planar), as the model does.
+  cand_3xBxNxK = jnp.stack(planar(jnp.asarray(cand)[None]))
+  args = (jnp.asarray(corr)[None], cand_3xBxNxK, jnp.asarray(coords)[None])
   variables, got = init_apply(module, seed, *args)
   p = numpy_params(variables)
   point = ref.point_branch(p, corr, cand, coords, 8)

@@ -130,6 +130,13 @@ def runs(files, workdir):
                       "nsfp", "--objective", "grid", "--steps", 10),
     "objective_not_nsfp": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o12.npy", *net,
                                "--objective", "grid"),
+    "nsfp_fields": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "flow_nsfp_fields.npy",
+                        "--method", "nsfp", "--method.nsfp.objective=grid",
+                        "--method.nsfp.steps=10"),  # nsfp_grid's settings, field by field
+    "field_typo": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o13.npy", *ck,
+                       "--method.optimise.bodies.inlir=0.1"),
+    "field_other_method": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o14.npy", *net,
+                               "--method.nsfp.steps=3"),
     "hyphenated": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o11.npy", *ck,
                        "--max-points", "100"),
     "lidar": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_lidar.npy", *net, "--lidar",
@@ -163,6 +170,8 @@ def runs(files, workdir):
   ("test_time", ["--config.eval.test_time.steps", "--method optimise"]),
   ("hyphenated", ["--max-points is now --max_points"]),
   ("objective_not_nsfp", ["--objective", "--method nsfp", "network"]),
+  ("field_typo", ["method.optimise.bodies.inlir", "no field 'inlir'", "inlier"]),
+  ("field_other_method", ["--method.nsfp.*", "the method is network"]),
   ("bad_up", ["raw1.npy", "no ground plane", "x axis"]),
 ])
 def test_broken_input_is_one_line_and_exit_2(runs, case, words):
@@ -297,6 +306,12 @@ def test_nsfp_is_a_method_of_predict_with_its_objective(runs, files, pair):
   assert "method nsfp (grid objective)" in stderr and "did not fire within 10 steps" in stderr
   api = inference.predict_flow(pair[0], pair[1], method="nsfp", objective="grid", steps=10)
   np.testing.assert_allclose(np.load(files / "flow_nsfp.npy"), api, atol=1e-5)
+  # The same settings given field by field, on the command line and through the API.
+  assert runs["nsfp_fields"][0] == 0, runs["nsfp_fields"][2]
+  np.testing.assert_allclose(np.load(files / "flow_nsfp_fields.npy"), api, atol=1e-5)
+  by_fields = inference.predict_flow(pair[0], pair[1], method="nsfp",
+                                     method_fields={"objective": "grid", "steps": 10})
+  np.testing.assert_allclose(by_fields, api, atol=1e-5)
 
 
 def test_notes_come_with_the_flow_and_as_warnings(pair):

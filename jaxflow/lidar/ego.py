@@ -20,16 +20,13 @@ per-second motions are divided by `frame_rate_hz` (default the config's, 10 Hz).
 """
 
 import dataclasses
-import os
 
 import numpy as np
 import small_gicp
-from scipy.spatial import cKDTree
 
 from jaxflow.configs import sweep as sweep_config
-from jaxflow.geometry import rigid
+from jaxflow.geometry import neighbours, registration, rigid
 
-THREADS = max(1, min(4, os.cpu_count() or 1))  # the k-d tree queries' workers
 # small_gicp on one thread: its parallel sums differ by rounding from run to run (1 of 320k flow
 # values by 1e-8 under load), and the same call must give the same flow (2.0 s a pair, 1.55 s on 2).
 GICP_THREADS = 1
@@ -84,16 +81,17 @@ class Registration:
     self.settings = _settings(settings)
     self._sources, self._targets = {}, {} if _targets is None else _targets
 
-  def clouds(self, voxel: float, neighbours: int):
-    """(pc1's cloud, pc2's cloud, pc2's tree) at this voxel size, covariances of `neighbours`."""
-    key = voxel, neighbours
+  def clouds(self, voxel: float, count: int):
+    """(pc1's cloud, pc2's cloud, pc2's tree) at this voxel size, covariances of `count`
+    neighbours."""
+    key = voxel, count
     if key not in self._sources:
       self._sources[key] = small_gicp.preprocess_points(
-        self.pc1, downsampling_resolution=voxel, num_neighbors=neighbours,
+        self.pc1, downsampling_resolution=voxel, num_neighbors=count,
         num_threads=GICP_THREADS)[0]
     if key not in self._targets:
       self._targets[key] = small_gicp.preprocess_points(
-        self.pc2, downsampling_resolution=voxel, num_neighbors=neighbours,
+        self.pc2, downsampling_resolution=voxel, num_neighbors=count,
         num_threads=GICP_THREADS)
     return self._sources[key], *self._targets[key]
 
@@ -101,9 +99,9 @@ class Registration:
     """small_gicp's GICP of pc1 onto pc2 from `start`, one pass per scale (coarse to fine;
     default the settings' scales)."""
     transform = _matrix(start)
-    for voxel, neighbours, match in self.settings.scales if scales is None else scales:
-      source, target, tree = self.clouds(voxel, neighbours)
-      if target.size() < neighbours or source.size() < neighbours:
+    for voxel, count, match in self.settings.scales if scales is None else scales:
+      source, target, tree = self.clouds(voxel, count)
+      if target.size() < count or source.size() < count:
         break
       result = small_gicp.align(target, source, tree, init_T_target_source=transform,
                                 registration_type="GICP", max_correspondence_distance=match,
@@ -134,11 +132,12 @@ class Registration:
 
 class Residual:
   """The static residual of a motion: pc1's voxel centres moved, each one's distance to the
-  local plane of its nearest pc2 voxel, at most `truncate` (Registration.residual)."""
+  local plane of its nearest pc2 voxel (small_gicp's normals), at most `truncate`, matched
+  within 3 x `truncate` (Registration.residual)."""
 
   def __init__(self, source_Kx3, target_Lx3, normals_Lx3, settings=None):
-    self.source, self.points, self.normals = source_Kx3, target_Lx3, normals_Lx3
-    self.tree = cKDTree(self.points) if len(self.points) else None
+    self.source = source_Kx3
+    self.target = registration.PlaneTarget(target_Lx3, normals_Lx3)
     settings = _settings(settings)
     self.truncate, self.inlier = settings.truncate, settings.inlier
 
@@ -146,15 +145,7 @@ class Residual:
     """Truncated point-to-plane distance of each of pc1's voxels, or of `points_Kx3` (`truncate`:
     no match)."""
     points = self.source if points_Kx3 is None else points_Kx3
-    out = np.full(len(points), self.truncate)
-    if self.tree is None:
-      return out
-    moved = motion.apply(points)
-    d, j = self.tree.query(moved, distance_upper_bound=3 * self.truncate)
-    ok = np.isfinite(d)
-    gap = np.abs(np.sum((moved[ok] - self.points[j[ok]]) * self.normals[j[ok]], 1))
-    out[ok] = np.minimum(gap, self.truncate)
-    return out
+    return self.target.plane_distance(motion.apply(points), self.truncate, 3 * self.truncate)
 
   def __call__(self, motion: rigid.Motion) -> tuple[float, float]:
     """(mean residual, fraction within `inlier`)."""
@@ -168,7 +159,7 @@ class Target:
 
   def __init__(self, pc2_Mx3, ground2_M=None, settings=None):
     settings = _settings(settings)
-    neighbours, self.max_match = settings.neighbours, settings.max_match
+    k, self.max_match = settings.neighbours, settings.max_match
     above = np.asarray(pc2_Mx3, np.float64)
     if ground2_M is not None:
       above = above[~np.asarray(ground2_M, bool)]
@@ -178,28 +169,24 @@ class Target:
       inverse = inverse.reshape(-1)
       above = np.stack([np.bincount(inverse, above[:, i]) / count for i in range(3)], 1)
     self.points = above
-    self.tree = cKDTree(above[:, :2]) if len(above) else None
+    self.tree = neighbours.Tree(above[:, :2]) if len(above) else None
     self.normal_Mx2 = np.zeros((len(above), 2))
     self.line_M = np.zeros(len(above), bool)
     self.usable_M = np.ones(len(above), bool)
-    if len(above) > neighbours:
-      _, idx = self.tree.query(above[:, :2], neighbours)
-      nb = above[idx][..., :2]
-      centred = nb - nb.mean(1, keepdims=True)
-      cov = np.einsum("mki,mkj->mij", centred, centred)
-      values, vectors = np.linalg.eigh(cov)
+    if len(above) > k:
+      values, vectors = neighbours.local_spread(above[:, :2], k, self.tree)
       self.normal_Mx2 = vectors[:, :, 0]  # least spread: across the line
       self.line_M = values[:, 0] < settings.line ** 2 * np.maximum(values[:, 1], 1e-12)
       # Neither a line nor a small blob (a pole): an area seen from above (a tree's crown, a
       # roof), whose visible rim moves with the sensor: no residual there.
-      self.usable_M = self.line_M | (values[:, 1] < settings.blob ** 2 * neighbours)
+      self.usable_M = self.line_M | (values[:, 1] < settings.blob ** 2 * k)
 
-  def bev_residuals(self, moved_Kx3):
-    """(residual R, normal R x 3, point index K of each row): one row a matched point with a line
-    (across it), two rows for a blob (x and y); matches beyond `max_match` are left out."""
+  def bev_rows(self, moved_Kx3) -> registration.Rows:
+    """Residual rows seen from above: one row a matched point with a line (across it), two rows
+    for a blob (x and y); matches beyond `max_match` are left out."""
     if self.tree is None or not len(moved_Kx3):
-      return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
-    dist, j = self.tree.query(moved_Kx3[:, :2], distance_upper_bound=self.max_match)
+      return registration.Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64))
+    dist, j = self.tree.nearest(moved_Kx3[:, :2], self.max_match)
     ok = np.flatnonzero(np.isfinite(dist))
     ok = ok[self.usable_M[j[ok]]]
     j = j[ok]
@@ -210,7 +197,8 @@ class Target:
               np.tile([0, 1.0, 0], ((~line).sum(), 1))]
     rows_r = [np.sum(diff[line] * n_line, 1), diff[~line, 0], diff[~line, 1]]
     rows_i = [ok[line], ok[~line], ok[~line]]
-    return np.concatenate(rows_r), np.concatenate(rows_n), np.concatenate(rows_i)
+    return registration.Rows(np.concatenate(rows_r), np.concatenate(rows_n),
+                             np.concatenate(rows_i))
 
 
 def search(target: Target, above_Kx3, scale: float = 0.5, settings=None,
@@ -226,7 +214,7 @@ def search(target: Target, above_Kx3, scale: float = 0.5, settings=None,
   c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
   px, py = above_Kx3[None, :, 0], above_Kx3[None, :, 1]
   moved = np.stack([c * px - s * py + x[:, None], s * px + c * py + y[:, None]], -1)
-  d, _ = target.tree.query(moved.reshape(-1, 2), distance_upper_bound=scale, workers=THREADS)
+  d, _ = target.tree.nearest(moved.reshape(-1, 2), scale)
   cost = np.minimum(d, scale).reshape(len(yaw), -1).mean(1)
   best = int(np.argmin(cost))  # the first of equal costs: the grid's order, as a loop would
   return yaw_motion(float(np.degrees(yaw[best])), float(x[best]), float(y[best]))

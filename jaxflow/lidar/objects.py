@@ -8,20 +8,20 @@ above the ground are grouped into objects by connectivity seen from above (cells
 object with enough unexplained points (a share of its points, or a count) gets motions from
 several starts (standing still, the caller's flow, e.g. the network's, fitted rigidly, and the best
 translation of a search over +-`search_per_s` / `frame_rate_hz` m), each refined by a bird's-eye
-ICP (yaw and translation; its height follows the ground), and keeps the motion that fits pc2 best,
-standing still unless another fits clearly better; a kept motion is refitted on all the object's
-points. Points no object claims keep the ego-motion. All in z-up coordinates, frame 1. The names
-are the fields of `settings`, the `objects` block of jaxflow/configs/sweep.py (default: its values).
+ICP (yaw and translation, point-to-line: jaxflow.geometry.registration; its height follows the
+ground), and keeps the motion that fits pc2 best, standing still unless another fits clearly
+better; a kept motion is refitted on all the object's points. Points no object claims keep the
+ego-motion. All in z-up coordinates, frame 1. The names are the fields of `settings`, the
+`objects` block of jaxflow/configs/sweep.py (default: its values).
 """
 
 import dataclasses
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from jaxflow.configs import sweep as sweep_config
-from jaxflow.geometry import rigid, visibility as views
+from jaxflow.geometry import neighbours, registration, rigid, visibility as views
 from jaxflow.lidar import ego
 
 
@@ -40,43 +40,31 @@ class Found:
 
 def _per_point(target: ego.Target, moved_Kx3) -> np.ndarray:
   """Bird's-eye distance (point-to-line, or to a pole) of each point to pc2; inf: no match."""
-  r, _, idx = target.bev_residuals(moved_Kx3)
+  rows = target.bev_rows(moved_Kx3)
   out = np.full(len(moved_Kx3), -np.inf)
-  np.maximum.at(out, idx, np.abs(r))
+  np.maximum.at(out, rows.index, np.abs(rows.residual))
   out[out < 0] = np.inf
   return out
 
 
 def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion, rounds: int) -> rigid.Motion:
-  """Yaw and horizontal translation of `start` refined (robust, shrinking scale), `rounds`
-  iterations at most."""
-  rotation, translation = start.rotation.copy(), start.translation.copy()
-  for i in range(rounds):
-    scale = (0.3, 0.15, 0.08, 0.05)[min(i // 4, 3)]
-    moved = points_Kx3 @ rotation.T + translation
-    centre = moved.mean(0)  # rotate about the object's centre (well conditioned)
-    r, n, idx = target.bev_residuals(moved)
-    if len(r) < 3:
-      break
-    q = moved[idx] - centre
-    w = 1.0 / (1.0 + (r / scale) ** 2) ** 2 * (np.abs(r) < 3 * scale + 0.2)
-    jac = np.c_[q[:, 0] * n[:, 1] - q[:, 1] * n[:, 0], n[:, 0], n[:, 1]]
-    h = jac.T @ (jac * w[:, None]) + 1e-3 * np.eye(3)
-    step = -np.linalg.solve(h, jac.T @ (w * r))
-    c, s = np.cos(step[0]), np.sin(step[0])
-    d_rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-    rotation = d_rot @ rotation
-    translation = d_rot @ (translation - centre) + centre + np.r_[step[1:], 0.0]
-    if np.abs(step).max() < 1e-5:
-      break
-  return rigid.Motion(rotation, translation)
+  """Yaw and horizontal translation of `start` refined seen from above (robust, the scale
+  shrinking every 4 rounds), `rounds` rounds at most, turning about the object's centre."""
+
+  def rows_of(moved_Kx3, scale):
+    rows = target.bev_rows(moved_Kx3)
+    return dataclasses.replace(rows, gate=np.abs(rows.residual) < 3 * scale + 0.2)
+
+  scales = [(0.3, 0.15, 0.08, 0.05)[min(i // 4, 3)] for i in range(rounds)]
+  return registration.robust_fit(points_Kx3, start, rows_of, scales, dof="yaw_xy",
+                                 about_centroid=True, damping=1e-3, converged=1e-5)
 
 
 def _costs(tree, points_Kx3, visibility, to2, truncate) -> np.ndarray:
   """Truncated 3-D distance of each point to ego-compensated pc2, NaN where pc2 could not see it
   (a box slid along its own side still matches seen from above, not in 3-D), in units of
   `truncate` (far objects are sampled sparsely: their distances are larger whatever the motion)."""
-  d, _ = tree.query(points_Kx3, distance_upper_bound=truncate)
+  d, _ = tree.nearest(points_Kx3, truncate)
   d = np.minimum(d, truncate) / truncate
   d[visibility.hidden(to2.apply(points_Kx3))] = np.nan
   return d
@@ -117,8 +105,7 @@ def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
     steps = np.arange(-half, half + 1e-9, step)
     dx, dy = np.meshgrid(steps, steps, indexing="ij")
     shifts = best + np.c_[dx.ravel(), dy.ravel(), np.zeros(dx.size)]
-    d, _ = tree.query((points_Kx3[None] + shifts[:, None]).reshape(-1, 3),
-                      distance_upper_bound=truncate)
+    d, _ = tree.nearest((points_Kx3[None] + shifts[:, None]).reshape(-1, 3), truncate)
     cost = np.minimum(d, truncate).reshape(len(shifts), -1).mean(1)
     cost += 1e-4 * np.linalg.norm(shifts, axis=1)  # ties: the smaller move
     best = shifts[int(np.argmin(cost))]
@@ -131,22 +118,38 @@ def _moving_parts(tree, points_Kx3, motion, visibility, ego_motion, truncate,
   moving car to the parked car beside it (a gap under two cells): split it by connectivity at
   `part_cell`, without bridging, and keep still every part of `min_points` that standing still
   explains clearly better than the motion (`_better`, the test a motion passed against it)."""
-  ij = np.floor(points_Kx3[:, :2] / settings.part_cell).astype(np.int64)
-  ij -= ij.min(0)
-  grid = np.zeros(ij.max(0) + 1, bool)
-  grid[ij[:, 0], ij[:, 1]] = True
-  labels, count = ndimage.label(grid, np.ones((3, 3)))
-  part = labels[ij[:, 0], ij[:, 1]]
+  part, count = cell_components(points_Kx3, np.ones(len(points_Kx3), bool), settings.part_cell,
+                                bridge=False)
   keep = np.ones(len(points_Kx3), bool)
   if count < 2:
     return keep
   still = _costs(tree, points_Kx3, visibility, ego_motion, truncate)
   moving = _costs(tree, motion.apply(points_Kx3), visibility, ego_motion, truncate)
-  for k in range(1, count + 1):
+  for k in range(count):
     mine = part == k
     if mine.sum() >= settings.min_points and _better(moving[mine], still[mine], settings):
       keep[mine] = False
   return keep
+
+
+def cell_components(points_Nx3, seeds_N, cell: float, bridge: bool):
+  """(label N, count): the 8-connected components of the cells (of `cell` m, seen from above) that
+  the `seeds_N` points occupy, gaps of one cell bridged when `bridge`; every point in a
+  component's cells gets its label (0 .. count - 1), the others -1."""
+  ij = np.floor(points_Nx3[:, :2] / cell).astype(np.int64)
+  if not seeds_N.any():
+    return np.full(len(points_Nx3), -1), 0
+  ij = ij - ij[seeds_N].min(0)
+  shape = ij[seeds_N].max(0) + 1
+  inside = (ij >= 0).all(1) & (ij < shape).all(1)
+  grid = np.zeros(shape, bool)
+  grid[ij[seeds_N, 0], ij[seeds_N, 1]] = True
+  if bridge:
+    grid = ndimage.binary_dilation(grid, np.ones((3, 3)))
+  labels, count = ndimage.label(grid, np.ones((3, 3)))
+  out = np.full(len(points_Nx3), -1)
+  out[inside] = labels[ij[inside, 0], ij[inside, 1]] - 1
+  return out, count
 
 
 def groups(points_Nx3, height_N, cell: float | None = None, bridge: bool = True, settings=None):
@@ -154,23 +157,8 @@ def groups(points_Nx3, height_N, cell: float | None = None, bridge: bool = True,
   cell) seen from above, from the points between 0 and `object_top` above the ground (gaps of a
   cell bridged unless `bridge` is False); higher points join the object below."""
   settings = _settings(settings)
-  cell = settings.cell if cell is None else cell
   low = (height_N > 0) & (height_N < settings.object_top)
-  ij = np.floor(points_Nx3[:, :2] / cell).astype(np.int64)
-  if not low.any():
-    return np.full(len(points_Nx3), -1), 0
-  lo = ij[low].min(0)
-  ij = ij - lo
-  shape = ij[low].max(0) + 1
-  inside = (ij >= 0).all(1) & (ij < shape).all(1)
-  grid = np.zeros(shape, bool)
-  grid[ij[low, 0], ij[low, 1]] = True
-  if bridge:
-    grid = ndimage.binary_dilation(grid, np.ones((3, 3)))
-  labels, count = ndimage.label(grid, np.ones((3, 3)))
-  out = np.full(len(points_Nx3), -1)
-  out[inside] = labels[ij[inside, 0], ij[inside, 1]] - 1
-  return out, count
+  return cell_components(points_Nx3, low, settings.cell if cell is None else cell, bridge)
 
 
 def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion, surface=None,
@@ -200,7 +188,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   label, count = groups(pc1, np.where(ground1, -1.0, height), settings=s)
   label[ground1] = -1
   unexplained = _per_point(target, pc1) > s.unexplained
-  tree = cKDTree(above2)
+  tree = neighbours.Tree(above2)
   visibility = views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden)
   rng = np.random.default_rng(seed)
   moved, candidates = [], 0
@@ -225,7 +213,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     if start_flow_Nx3 is not None and np.isfinite(start_flow_Nx3[idx]).all():
       given = back.apply(pts + np.asarray(start_flow_Nx3, np.float64)[idx])
       starts["network"] = rigid.kabsch(pts, given)
-    spacing = np.median(cKDTree(pts).query(judge, 2)[0][:, 1])
+    spacing = np.median(neighbours.Tree(pts).knn(judge, 2, distances=True)[0][:, 1])
     truncate = float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
     still_costs = _costs(tree, judge, visibility, ego_motion, truncate)
     best_name, best, best_costs = "still", still, still_costs

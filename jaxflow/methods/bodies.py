@@ -8,8 +8,9 @@ right on most of each body (the optimiser's):
 1. hypotheses: sequential RANSAC on the flow's correspondences p -> p + flow, each sample drawn
    among a point's nearest neighbours (a body is local), inliers removed, until too few remain;
 2. each hypothesis refined against pc2 by a robust ICP of its inliers (point-to-plane with a
-   small point-to-point part, so a plane cannot slide along itself), the unrefined motion kept
-   beside it; a refinement that moves its points by more than `max_shift` on average is refused;
+   small point-to-point part, so a plane cannot slide along itself; jaxflow.geometry.registration),
+   the unrefined motion kept beside it; a refinement that moves its points by more than
+   `max_shift` on average is refused;
 3. each point takes the motion whose moved neighbourhood lies nearest pc2's surfaces (distances to
    pc2's local planes, truncated, averaged over the point's neighbours in pc1), among the motions
    its neighbours hold (a body is contiguous), pulled a little towards its starting flow and towards
@@ -30,9 +31,8 @@ pairs, the KITTI sample and 4 val pairs each of synthetic_lidar and synthetic_th
 import dataclasses
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from jaxflow.geometry import rigid
+from jaxflow.geometry import neighbours, registration, rigid
 from jaxflow.geometry.visibility import OUTSIDE, SEEN, View
 
 
@@ -83,18 +83,11 @@ class Found:
   note: str | None = None
 
 
-def _normals(points_Mx3, k: int = 10) -> np.ndarray:
-  """Unit normal of each point's k-neighbourhood (least-spread direction)."""
-  _, idx = cKDTree(points_Mx3).query(points_Mx3, min(k, len(points_Mx3)), workers=-1)
-  centred = points_Mx3[idx] - points_Mx3[idx].mean(1, keepdims=True)
-  return np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1][:, :, 0]
-
-
 def _slides(points_Kx3, normals_Kx3, motion, world, most: float) -> bool:
   """Whether `motion` departs from `world` along the points' surfaces (a plane sliding along
   itself, which pc2 cannot tell from standing on it): the median |normal part| / departure is
   below `most`."""
-  departure = (points_Kx3 @ motion[0].T + motion[1]) - (points_Kx3 @ world[0].T + world[1])
+  departure = motion.apply(points_Kx3) - world.apply(points_Kx3)
   across = np.abs(np.sum(departure * normals_Kx3, 1))
   return bool(np.median(across / np.maximum(np.linalg.norm(departure, axis=1), 1e-9)) < most)
 
@@ -105,9 +98,9 @@ def _join_world(best_N, motions, bodies_found, pc1, normals_Nx3, target, view, s
   are; when it takes most of them out of pc2's view, the body joins if its own motion is a slide
   of the world's. A body mostly hidden under the world's motion keeps its own."""
   world = motions[0]
-  moved = pc1 @ world[0].T + world[1]
+  moved = world.apply(pc1)
   state = view.state(moved)
-  world_cost = target.cost(moved, settings.truncate)
+  world_cost = target.plane_distance(moved, settings.truncate)
   out = best_N.copy()
   for h in np.unique(best_N):
     if h % bodies_found == 0:
@@ -115,8 +108,7 @@ def _join_world(best_N, motions, bodies_found, pc1, normals_Nx3, target, view, s
     pts = np.flatnonzero(best_N == h)
     seen = state[pts] == SEEN
     if seen.mean() >= settings.min_seen:
-      r, t = motions[h]
-      own = target.cost(pc1[pts[seen]] @ r.T + t, settings.truncate)
+      own = target.plane_distance(motions[h].apply(pc1[pts[seen]]), settings.truncate)
       joins = world_cost[pts[seen]].mean() <= own.mean() + settings.merge
     else:
       joins = (state[pts] == OUTSIDE).mean() >= 0.5 and _slides(
@@ -126,72 +118,18 @@ def _join_world(best_N, motions, bodies_found, pc1, normals_Nx3, target, view, s
   return out
 
 
-def _cross(a_Nx3, b_Nx3):
-  """Row-wise a x b (np.cross without its axis handling, which dominated the ICP's time)."""
-  return np.stack([a_Nx3[:, 1] * b_Nx3[:, 2] - a_Nx3[:, 2] * b_Nx3[:, 1],
-                   a_Nx3[:, 2] * b_Nx3[:, 0] - a_Nx3[:, 0] * b_Nx3[:, 2],
-                   a_Nx3[:, 0] * b_Nx3[:, 1] - a_Nx3[:, 1] * b_Nx3[:, 0]], 1)
-
-
-def _skew(v_3):
-  """[v]_x: the matrix of x -> v x x."""
-  return np.array([[0.0, -v_3[2], v_3[1]], [v_3[2], 0.0, -v_3[0]], [-v_3[1], v_3[0], 0.0]])
-
-
-class _Target:
-  """pc2 prepared once: its k-d tree and normals."""
-
-  def __init__(self, pc2_Mx3):
-    self.points = pc2_Mx3
-    self.tree = cKDTree(pc2_Mx3)
-    self.normals = _normals(pc2_Mx3)
-
-  def cost(self, moved_Nx3, truncate: float) -> np.ndarray:
-    """Per point: its distance to the plane of the nearest pc2 point (`truncate` when none is
-    within `truncate`). Not the distance to the point: where two sweeps sample a surface at other
-    places (a LiDAR's rings on a facade), that distance favours motions that line the samples up."""
-    d, j = self.tree.query(moved_Nx3, distance_upper_bound=truncate)
-    near = np.isfinite(d)
-    out = np.full(len(d), truncate)
-    out[near] = np.minimum(np.abs(np.sum((moved_Nx3[near] - self.points[j[near]])
-                                         * self.normals[j[near]], 1)), truncate)
-    return out
-
-  def icp(self, src_Kx3, motion, rounds: int, scales, settings: Settings):
-    """Gauss-Newton rounds of the robust point-to-plane (+ point-to-point) fit of src to pc2."""
-    rotation, translation = motion
-    for i in range(rounds):
-      scale = scales[min(i * len(scales) // rounds, len(scales) - 1)]
-      q = src_Kx3 @ rotation.T + translation
-      d, j = self.tree.query(q)  # one thread: threads cost more than a query of <= 4000 points
-      n = self.normals[j]
-      diff = q - self.points[j]
-      r = np.sum(diff * n, 1)
-      w = (d < 4 * scale) / (1 + (r / scale) ** 2) ** 2  # Geman-McClure, far matches left out
-      if w.sum() < 6:
-        break
-      jac = np.concatenate([_cross(q, n), n], 1)
-      h = jac.T @ (jac * w[:, None]) + 1e-6 * np.eye(6)
-      g = jac.T @ (w * r)
-      # The point-to-point rows, d(q_axis) / d(omega, t) = (q x e_axis, e_axis), summed in closed
-      # form: sum wp [[|q|^2 I - q q^T, [q]_x], [-[q]_x, I]] and sum wp (q x diff, diff).
-      wp = settings.point_weight * w
-      qw = q * wp[:, None]
-      h[:3, :3] += np.eye(3) * np.sum(qw * q) - q.T @ qw
-      skew = _skew(qw.sum(0))
-      h[:3, 3:] += skew
-      h[3:, :3] -= skew
-      h[3:, 3:] += np.eye(3) * wp.sum()
-      g[:3] += np.sum(_cross(qw, diff), 0)
-      g[3:] += wp @ diff
-      step = -np.linalg.solve(h, g)
-      d_rot = rigid.rotation_from_vector(step[:3])
-      rotation, translation = d_rot @ rotation, d_rot @ translation + step[3:]
-    start = src_Kx3 @ motion[0].T + motion[1]
-    if np.linalg.norm(src_Kx3 @ rotation.T + translation - start, axis=1).mean() > \
-        settings.max_shift or not np.all(np.isfinite(rotation)):
-      return motion
-    return rotation, translation
+def _icp(target: registration.PlaneTarget, src_Kx3, motion, rounds: int, scales,
+         settings: Settings):
+  """`motion` (a rigid.Motion) refined by the robust point-to-plane (+ point-to-point) fit of src
+  to pc2, `scales` spread over `rounds` rounds; refused (the start returned) when it moves the
+  points by more than `max_shift` on average."""
+  per_round = [scales[min(i * len(scales) // rounds, len(scales) - 1)] for i in range(rounds)]
+  fitted = registration.robust_fit(src_Kx3, motion, target.plane_rows, per_round,
+                                   point_weight=settings.point_weight, min_weight=6)
+  shift = np.linalg.norm(fitted.apply(src_Kx3) - motion.apply(src_Kx3), axis=1).mean()
+  if shift > settings.max_shift or not np.all(np.isfinite(fitted.rotation)):
+    return motion
+  return fitted
 
 
 def _sample_fits(src_Nx3, dst_Nx3, picks_Tx3):
@@ -204,12 +142,12 @@ def _sample_fits(src_Nx3, dst_Nx3, picks_Tx3):
 
 
 def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None) -> list:
-  """Sequential local RANSAC on p -> p + flow: [(rotation, translation, inlier indices)].
+  """Sequential local RANSAC on p -> p + flow: [(rigid.Motion, inlier indices)].
   `nbr_NxK`: each point's `settings.local` nearest (searched when not given). A hypothesis's
   `trials` samples are drawn and scored at once."""
   target = pc1_Nx3 + flow_Nx3
   if nbr_NxK is None:
-    _, nbr_NxK = cKDTree(pc1_Nx3).query(pc1_Nx3, min(settings.local, len(pc1_Nx3)), workers=-1)
+    nbr_NxK = neighbours.knn_graph(pc1_Nx3, settings.local)
   remaining, found = np.arange(len(pc1_Nx3)), []
   while len(remaining) >= settings.min_support and len(found) < settings.max_bodies:
     left = np.zeros(len(pc1_Nx3), bool)
@@ -236,7 +174,7 @@ def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None) -> list
       if len(inliers) < 3:
         break
       best = rigid.kabsch(pc1_Nx3[inliers], target[inliers])
-    found.append((best.rotation, best.translation, inliers))
+    found.append((best, inliers))
     remaining = np.setdiff1d(remaining, inliers)
   return found
 
@@ -261,28 +199,29 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
                                           "returned unchanged")
   rng = np.random.default_rng(settings.seed)
   sample = _subset(np.arange(len(pc1)), settings.sample, rng)
-  _, nbr_NxK = cKDTree(pc1).query(pc1, min(settings.neighbours, len(pc1)), workers=-1)
+  tree1 = neighbours.Tree(pc1)
+  nbr_NxK = tree1.knn(pc1, settings.neighbours)
   whole = len(sample) == len(pc1) and settings.local == settings.neighbours  # one search serves
   found = hypotheses(pc1[sample], flow[sample], settings, rng, nbr_NxK if whole else None)
   if not found:
     return flow.astype(np.float32), Found(0, len(pc1), "bodies: no rigid motion has support; "
                                                       "the flow is returned unchanged")
-  target = _Target(pc2)
+  target = registration.PlaneTarget(pc2)
   bins = round(360 / settings.view_bin_deg), round(180 / settings.view_bin_deg)
   view = View(pc2, "y", *bins, settings.hidden)  # the model frame: y up
-  normals1 = _normals(pc1)
+  normals1 = neighbours.local_spread(pc1, 10, tree1)[1][:, :, 0]
   coarse = (0.2, 0.1, 0.05, 0.03)
-  motions = [target.icp(pc1[sample[_subset(inl, settings.icp_points, rng)]], (r, t),
-                        settings.icp_rounds, coarse, settings) for r, t, inl in found]
-  motions += [(r, t) for r, t, _ in found]  # the unrefined motions stay candidates
+  motions = [_icp(target, pc1[sample[_subset(inl, settings.icp_points, rng)]], m,
+                  settings.icp_rounds, coarse, settings) for m, inl in found]
+  motions += [m for m, _ in found]  # the unrefined motions stay candidates
   # A body is contiguous: a point may take only a motion that a neighbour takes (at first, one
   # whose hypothesis the neighbour supported in the starting flow).
   label_N = np.full(len(pc1), -1)
-  for h, (_, _, inl) in enumerate(found):
+  for h, (_, inl) in enumerate(found):
     label_N[sample[inl]] = h
   label_N = np.where(label_N >= 0, label_N, len(found))  # unsupported: any motion
   smooth = lambda per_point_N: per_point_N[nbr_NxK].mean(1)
-  start_cost = smooth(target.cost(pc1 + flow, settings.truncate))
+  start_cost = smooth(target.plane_distance(pc1 + flow, settings.truncate))
   every = np.arange(len(pc1))
   for round_ in range(settings.em_rounds + 1):
     held = np.zeros((len(pc1), len(found) + 1), bool)
@@ -291,15 +230,15 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
     cost_NxH = np.full((len(pc1), len(motions)), np.inf)
     choice_NxH = np.full_like(cost_NxH, np.inf)
     cost_N, departure_N = np.empty(len(pc1)), np.empty(len(pc1))
-    for h, (r, t) in enumerate(motions):
+    for h, motion in enumerate(motions):
       # Costs only where the motion may be taken (the world's: everywhere, bodies join it), each
       # the mean over the point's neighbours: those are the points whose cost is needed.
       rows = every if h % len(found) == 0 else np.flatnonzero(allowed[:, h])
       if not len(rows):
         continue
       need = every if len(rows) == len(pc1) else np.unique(nbr_NxK[rows])
-      moved = pc1[need] @ r.T + t
-      cost_N[need] = target.cost(moved, settings.truncate)
+      moved = motion.apply(pc1[need])
+      cost_N[need] = target.plane_distance(moved, settings.truncate)
       departure_N[need] = np.minimum(np.linalg.norm(moved - pc1[need] - flow[need], axis=1), 1.0)
       cost_NxH[rows, h] = cost_N[nbr_NxK[rows]].mean(1)
       choice_NxH[rows, h] = (cost_NxH[rows, h] + settings.pull * departure_N[nbr_NxK[rows]].mean(1)
@@ -310,11 +249,11 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
     label_N = best_N % len(found)
     if round_ == settings.em_rounds:
       break
-    motions = [target.icp(pc1[_subset(np.flatnonzero(best_N == h), settings.icp_points, rng)],
-                          m, 10, (0.05, 0.03), settings)
+    motions = [_icp(target, pc1[_subset(np.flatnonzero(best_N == h), settings.icp_points, rng)],
+                    m, 10, (0.05, 0.03), settings)
                if (best_N == h).sum() >= 10 else m for h, m in enumerate(motions)]
-  rotations = np.stack([r for r, _ in motions])[best_N]
-  translations = np.stack([t for _, t in motions])[best_N]
+  rotations = np.stack([m.rotation for m in motions])[best_N]
+  translations = np.stack([m.translation for m in motions])[best_N]
   out = np.einsum("nij,nj->ni", rotations, pc1) + translations - pc1
   # Out of pc2's view, a good fit of the starting flow is a point dragged onto what pc2 saw.
   free = (cost_NxH[np.arange(len(pc1)), best_N] > start_cost + settings.free_margin) & (

@@ -22,9 +22,9 @@ import threading
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import spatial
 
 from jaxflow.geometry import ops
+from jaxflow.geometry.neighbours import Tree
 
 SEARCHES = ("auto", "host", "device")
 # The device search's block: query rows x points compared at once (x 3 float32 differences).
@@ -48,7 +48,7 @@ class _TreeCache:
     self.size, self.trees, self.lock = size, collections.OrderedDict(), threading.Lock()
     self.hits = self.misses = 0
 
-  def tree(self, points_Mx3: np.ndarray) -> spatial.cKDTree:
+  def tree(self, points_Mx3: np.ndarray) -> Tree:
     points_Mx3 = np.ascontiguousarray(points_Mx3, np.float32)
     key = (points_Mx3.shape, hashlib.blake2b(points_Mx3.data, digest_size=16).digest())
     with self.lock:
@@ -58,7 +58,7 @@ class _TreeCache:
         self.hits += 1
         return tree
       self.misses += 1
-    tree = spatial.cKDTree(points_Mx3.astype(np.float64))
+    tree = Tree(points_Mx3)
     with self.lock:
       self.trees[key] = tree
       while len(self.trees) > self.size:
@@ -100,7 +100,7 @@ def host_search(query_BxNx3, points_BxMx3, k: int) -> np.ndarray:
   query, points = np.asarray(query_BxNx3, np.float64), np.asarray(points_BxMx3)
   out = np.zeros(query.shape[:2] + (k,), np.int32)
   for i, (q, p) in enumerate(zip(query, points)):
-    out[i] = _TREES.tree(p).query(q, k=[*range(1, k + 1)], workers=-1)[1]
+    out[i] = _TREES.tree(p).knn(q, k)
   return out
 
 

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxflow import configfile
 from jaxflow.errors import ConfigError
 from jaxflow.methods import bodies, objectives, optimiser, rigid_clusters
 
@@ -59,18 +60,40 @@ class Optimise:
     model="flow", objective="exact", steps=200, learning_rate=0.02, smoothness=1.0, refresh=5)
   bodies: "bodies.Settings | None" = bodies.Settings()  # (a string: the field hides the module)
 
+  def __post_init__(self):
+    for name in ("start_iters", "start_candidates"):
+      value = getattr(self, name)
+      if value is not None and (not isinstance(value, int) or value < 1):
+        raise ValueError(f"optimise {name} must be None or an integer >= 1, got {value!r}")
+    if not isinstance(self.rigid_steps, int) or self.rigid_steps < 0:
+      raise ValueError(f"optimise rigid_steps must be an integer >= 0, got {self.rigid_steps!r}")
+    if not self.rigid_learning_rate > 0:
+      raise ValueError("optimise rigid_learning_rate must be > 0, got "
+                       f"{self.rigid_learning_rate!r}")
+
 
 def settings(method: str, steps: int | None = None, iters: int | None = None,
-             objective: str | None = None):
-  """The default settings of a method (None for `network`); `steps` caps the optimiser's steps
-  (optimise's rigid-bodies stage counts none: it runs whatever `steps`); `iters`: the network's
-  iterations for optimise's starting flow; `objective`: NSFP's (exact or grid)."""
+             objective: str | None = None, fields: dict | None = None):
+  """The settings of a method (None for `network`): its defaults; `steps` caps the optimiser's
+  steps (optimise's rigid-bodies stage counts none: it runs whatever `steps`); `iters`: the
+  network's iterations for optimise's starting flow; `objective`: NSFP's (exact or grid); then
+  `fields`, {dotted field: value} at any depth (e.g. {"bodies.inlier": 0.1}; the command line's
+  --method.optimise.bodies.inlier=0.1; configfile.replace_settings)."""
   if method not in METHODS:
     raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
   if objective is not None and method != "nsfp":
     raise ConfigError(f"--objective chooses NSFP's objective: it needs --method nsfp, not {method}")
   if method == "network":
+    if fields:
+      raise ConfigError(f"--method network has no settings to set ({', '.join(fields)}); the "
+                        "network's are the config's (--config.model.FIELD)")
     return None
+  chosen = _defaults(method, steps, iters, objective)
+  return configfile.replace_settings(chosen, fields, f"method.{method}") if fields else chosen
+
+
+def _defaults(method: str, steps: int | None, iters: int | None, objective: str | None):
+  """The method's defaults with --steps, --iters and --objective applied."""
   if steps is not None and steps < 0:
     raise ConfigError(f"--steps must be >= 0, got {steps}")
   if method == "nsfp":

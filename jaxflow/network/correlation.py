@@ -2,7 +2,8 @@
 
 Once per pair, `truncated_correlation` keeps for every pc1 point the `truncate_k` largest
 feature correlations with pc2 and the xyz of those candidates. At every iteration,
-`PointVoxelCorrelation` looks them up around the current estimate y = pc1 + flow:
+`PointVoxelCorrelation` looks them up (their xyz as three B x N x K planes, `planar`) around the
+current estimate y = pc1 + flow:
 - point branch: the `knn` candidates nearest to y, [corr, xyz - y] -> MLP -> max;
 - voxel branch: per level, 3x3x3 cells of size base_scale * 2**level centred on y, each holding
   the MEAN correlation of the candidates inside it (0 when empty) -> MLP.
@@ -46,6 +47,15 @@ def truncated_correlation(f1_BxNxC, f2_BxMxC, xyz2_BxMx3, k: int, chunk: int = 0
   return ops.map_row_chunks(select, (f1_BxNxC,), chunk)
 
 
+def planar(xyz_BxNxKx3):
+  """Candidates' xyz as three B x N x K planes (x, y, z).
+
+  The iterations' elementwise work (offsets, distances, cells) then runs along K, which XLA's CPU
+  backend vectorises; along the trailing axis of 3 it ran ~2x slower (benchmarks/MODEL.md).
+  """
+  return tuple(xyz_BxNxKx3[..., a] for a in range(3))
+
+
 def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3,
                 form: str = "auto"):
   """Mean correlation of the candidates in each of the resolution^3 cells around the estimate.
@@ -54,13 +64,19 @@ def voxel_means(corr_BxNxK, offset_BxNxKx3, scale: float, resolution: int = 3,
   every |cell| <= resolution // 2; cells are numbered (dx * R + dy) * R + dz with d = cell + R // 2.
   `form` (VOXEL_CELLS) is how candidates are added into their cells.
   """
+  return planar_voxel_means(corr_BxNxK, planar(offset_BxNxKx3), scale, resolution, form)
+
+
+def planar_voxel_means(corr_BxNxK, offsets_3xBxNxK, scale: float, resolution: int = 3,
+                       form: str = "auto"):
+  """voxel_means of the offsets given as three B x N x K planes (`planar`)."""
   if form not in VOXEL_CELLS:
     raise ValueError(f"model.voxel_cells must be one of {', '.join(VOXEL_CELLS)}, got {form!r}")
   half = resolution // 2
-  cell_BxNxKx3 = jnp.round(jax.lax.stop_gradient(offset_BxNxKx3) / scale)
-  inside_BxNxK = jnp.all(jnp.abs(cell_BxNxKx3) <= half, axis=-1)
-  d = (cell_BxNxKx3 + half).astype(jnp.int32)
-  index_BxNxK = (d[..., 0] * resolution + d[..., 1]) * resolution + d[..., 2]
+  cells_3xBxNxK = [jnp.round(jax.lax.stop_gradient(o) / scale) for o in offsets_3xBxNxK]
+  inside_BxNxK = functools.reduce(jnp.logical_and, [jnp.abs(c) <= half for c in cells_3xBxNxK])
+  dx, dy, dz = [(c + half).astype(jnp.int32) for c in cells_3xBxNxK]
+  index_BxNxK = (dx * resolution + dy) * resolution + dz
   # The index is what the gradient keeps of every iteration: int8 where the cells fit.
   index_BxNxK = jnp.where(inside_BxNxK, index_BxNxK, -1).astype(
     jnp.int8 if resolution**3 < 128 else jnp.int32)
@@ -129,21 +145,23 @@ class PointVoxelCorrelation(nn.Module):
   voxel_cells: str = "auto"
 
   @nn.compact
-  def __call__(self, corr_BxNxK, xyz_BxNxKx3, coords_BxNx3):
-    offset_BxNxKx3 = xyz_BxNxKx3 - coords_BxNx3[:, :, None, :]
+  def __call__(self, corr_BxNxK, xyz_3xBxNxK, coords_BxNx3):
+    """corr_BxNxK and the candidates' xyz as three B x N x K planes (`planar`)."""
+    offsets_3xBxNxK = [xyz_3xBxNxK[a] - coords_BxNx3[:, :, a, None] for a in range(3)]
     # Point branch.
-    dist_BxNxK = jnp.sum(jax.lax.stop_gradient(offset_BxNxKx3) ** 2, axis=-1)
+    dist_BxNxK = sum(jax.lax.stop_gradient(o) ** 2 for o in offsets_3xBxNxK)
     knn = min(self.knn, corr_BxNxK.shape[-1])
     near_BxNxQ = jax.lax.top_k(-dist_BxNxK, knn)[1]
     near_corr = jnp.take_along_axis(corr_BxNxK, near_BxNxQ, axis=2)
-    near_offset = jnp.take_along_axis(offset_BxNxKx3, near_BxNxQ[..., None], axis=2)
-    x = jnp.concatenate([near_corr[..., None], near_offset], axis=-1)
+    near_offset = [jnp.take_along_axis(o, near_BxNxQ, axis=2) for o in offsets_3xBxNxK]
+    x = jnp.stack([near_corr, *near_offset], axis=-1)
     x = dense(64, self.precision, name="knn_conv")(x)
     x = nn.PReLU(negative_slope_init=0.25, name="knn_act")(GroupNorm(name="knn_norm")(x))
     point_BxNxF = dense(self.features, self.precision, name="knn_out")(jnp.max(x, axis=2))
     # Voxel branch.
     cells = [
-      voxel_means(corr_BxNxK, offset_BxNxKx3, self.base_scale * 2**level, form=self.voxel_cells)
+      planar_voxel_means(corr_BxNxK, offsets_3xBxNxK, self.base_scale * 2**level,
+                         form=self.voxel_cells)
       for level in range(self.levels)
     ]
     v = dense(128, self.precision, name="voxel_conv")(jnp.concatenate(cells, axis=-1))

@@ -15,7 +15,8 @@ import jax.numpy as jnp
 import ml_collections
 
 from jaxflow.geometry import ops
-from jaxflow.network.correlation import VOXEL_CELLS, PointVoxelCorrelation, truncated_correlation
+from jaxflow.network.correlation import (VOXEL_CELLS, PointVoxelCorrelation, planar,
+                                         truncated_correlation)
 from jaxflow.network.encoder import GraphEncoder, SetConvEncoder
 from jaxflow.network.layers import lax_precision
 from jaxflow.network.refine import GraphRefinement, SetConvRefinement
@@ -108,6 +109,7 @@ class SceneFlowNet(nn.Module):
     corr_BxNxK, cand_xyz_BxNxKx3 = truncated_correlation(
       f1, f2, pc2_BxMx3, self.truncate_k, self.corr_chunk, self.precision
     )
+    cand_xyz_3xBxNxK = jnp.stack(planar(cand_xyz_BxNxKx3))  # once, not in every iteration
     context = self.context_encoder(pc1_BxNx3, nbr1_BxNxK)
     hidden = context.shape[-1] // 2
     h0 = jnp.tanh(context[..., :hidden])
@@ -118,7 +120,7 @@ class SceneFlowNet(nn.Module):
       # RAFT's detach: each iteration's gradient reaches the parameters through its own update
       # only, not back through the earlier estimates (tests/test_gradients.py pins it).
       coords = jax.lax.stop_gradient(coords) if entering_BxNx3 is None else entering_BxNx3
-      corr = mdl.correlation(corr_BxNxK, cand_xyz_BxNxKx3, coords)
+      corr = mdl.correlation(corr_BxNxK, cand_xyz_3xBxNxK, coords)
       flow = coords - pc1_BxNx3
       h, delta = mdl.update(h, context_in, corr, flow, pc1_BxNx3, nbr1_BxNxK)
       coords = coords + delta
