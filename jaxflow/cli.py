@@ -100,7 +100,9 @@ _METHOD_FIELDS = {}  # the command line's --method.NAME.FIELD=V: {(NAME, FIELD):
 
 
 def take_method_fields(argv: list[str]) -> list[str]:
-  """argv without its --method.NAME.FIELD=V arguments, which are kept for `method_fields`."""
+  """argv without its --method.NAME.FIELD=V arguments, which are kept for `method_fields` (those
+  of an earlier call are dropped)."""
+  _METHOD_FIELDS.clear()
   kept, positional = [], False
   for arg in argv:
     if arg == "--":

@@ -110,6 +110,8 @@ def test_yaw_xy_fit_of_point_to_line_rows_recovers_a_cars_motion():
 
 
 def test_bad_dof_is_refused():
+  still = rigid.Motion.of(np.eye(3), np.zeros(3))
   with pytest.raises(ValueError, match="dof must be one of"):
-    registration.robust_fit(np.zeros((3, 3)), rigid.Motion.of(np.eye(3), np.zeros(3)),
-                            None, [0.1], dof="5")
+    registration.robust_fit(np.zeros((3, 3)), still, None, [0.1], dof="5")
+  with pytest.raises(ValueError, match="point_weight needs dof '6'"):
+    registration.robust_fit(np.zeros((3, 3)), still, None, [0.1], dof="yaw_xy", point_weight=0.1)

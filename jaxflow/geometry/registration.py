@@ -8,7 +8,7 @@ A residual row is a signed distance r along a unit direction n at one moved poin
 point-to-plane (n: the target point's normal), point-to-line seen from above (n: across the line,
 horizontal), point-to-point (a row per axis, or the closed-form `point_weight` part). Each round
 weighs the rows by Geman-McClure at that round's scale, solves the damped normal equations of
-the rotation about `centre` and the translation (6 unknowns, or yaw and a horizontal translation
+the rotation (about the origin or the points' centroid) and the translation (6 unknowns, or yaw and a horizontal translation
 for `dof="yaw_xy"`, z up) and composes the step onto the motion. Users: the rigid bodies of
 `optimise` (jaxflow.methods.bodies: point-to-plane + point-to-point, 6 dof) and the moving
 objects of raw sweeps (jaxflow.lidar.objects: point-to-line seen from above, yaw_xy); the
@@ -77,6 +77,8 @@ def robust_fit(points_Kx3, start: rigid.Motion, rows_of, scales, dof: str = "6",
   of the point-to-point rows beside each row (6 dof; Rows.offset needed)."""
   if dof not in DOFS:
     raise ValueError(f"registration dof must be one of {', '.join(DOFS)}, got {dof!r}")
+  if point_weight and dof != "6":
+    raise ValueError(f"registration point_weight needs dof '6', got dof {dof!r}")
   points = np.asarray(points_Kx3, np.float64)
   rotation = np.asarray(start.rotation, np.float64).copy()
   translation = np.asarray(start.translation, np.float64).copy()
