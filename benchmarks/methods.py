@@ -23,6 +23,7 @@ import time
 import jax
 import numpy as np
 
+from jaxflow import host_memory
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.evaluation import evaluator
 from jaxflow.methods import registry
@@ -53,7 +54,10 @@ def main():
   parser.add_argument("--num-points", type=int, default=8192)
   parser.add_argument("--no-bodies", action="store_true",
                       help="optimise without its last stage (jaxflow.methods.bodies): the gain it brings")
+  parser.add_argument("--host-memory", default=host_memory.RELEASE, choices=host_memory.CHOICES,
+                      help="malloc releases freed memory (evaluate.py's default) or keeps it")
   args = parser.parse_args()
+  host_memory.keep(args.host_memory)
   model, params, _, _, refine = checkpointing.load_for_inference(None)
   rows, results = [], {}
   for method in args.methods.split(","):

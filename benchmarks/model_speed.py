@@ -11,6 +11,7 @@ device memory (where the backend reports it) are printed with them. --train adds
 
 import argparse
 import platform
+import resource
 import time
 
 import jax
@@ -18,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxflow import host_memory
 from jaxflow.configs import ablation, default, pvraft
 from jaxflow.network.model import build_model
 from jaxflow.training import losses
@@ -30,13 +32,21 @@ CONFIGS = {
 
 
 def timed(fn, *args, repeats):
+  """Median seconds of a call, after one compile call."""
+  return timed_faults(fn, *args, repeats=repeats)[0]
+
+
+def timed_faults(fn, *args, repeats):
+  """(median seconds, median minor page faults) of a call, after one compile call."""
   jax.block_until_ready(fn(*args))  # compile
-  times = []
+  times, faults = [], []
   for _ in range(repeats):
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
     times.append(time.perf_counter() - start)
-  return float(np.median(times))
+    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+  return float(np.median(times)), int(np.median(faults))
 
 
 def temp_mib(jitted, *args):
@@ -81,9 +91,12 @@ def main():
   parser.add_argument("--inference", type=int, default=1, help="0: time the training step only")
   parser.add_argument("--corr-chunk", type=int, default=0)
   parser.add_argument("--precision", default=None, help="model.precision (default: the config's)")
+  parser.add_argument("--host-memory", default=host_memory.KEEP, choices=host_memory.CHOICES,
+                      help="malloc keeps freed memory (train.py's default) or releases it")
   args = parser.parse_args()
 
-  print(device_line())
+  note = host_memory.keep(args.host_memory)
+  print(device_line() + f", host memory {args.host_memory}" + (f" ({note})" if note else ""))
   rng = np.random.default_rng(0)
   for name in args.configs.split(","):
     cfg = CONFIGS[name]()
@@ -98,10 +111,10 @@ def main():
     if args.inference:
       forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters))
       mem = temp_mib(forward, variables, pc1, pc2)
-      t = timed(forward, variables, pc1, pc2, repeats=args.repeats)
+      t, faults = timed_faults(forward, variables, pc1, pc2, repeats=args.repeats)
       peak = peak_memory_gib()
       print(f"{name:>13} ({cfg.precision}): inference 1 pair x {args.points} points x "
-            f"{args.iters} iters: {1e3 * t:9.1f} ms, {mem:.0f} MiB temp"
+            f"{args.iters} iters: {1e3 * t:9.1f} ms, {mem:.0f} MiB temp, {faults} page faults"
             + (f", peak {peak:.2f} GiB" if peak is not None else ""), flush=True)
     if args.train:
       points, batch = args.train_points or args.points, args.train_batch
@@ -125,9 +138,10 @@ def main():
 
       batch_args = (variables["params"], opt, b1, b2, gt)
       mem = temp_mib(step, *batch_args)
-      t = timed(lambda *a: step(*a)[2], *batch_args, repeats=args.repeats)
+      t, faults = timed_faults(lambda *a: step(*a)[2], *batch_args, repeats=args.repeats)
       print(f"{name:>13}: train step batch {batch} x {points} points x {args.train_iters} iters: "
-            f"{1e3 * t:9.1f} ms, {mem:.0f} MiB temp ({batch / t:.2f} pairs/s)", flush=True)
+            f"{1e3 * t:9.1f} ms, {mem:.0f} MiB temp, {faults} page faults "
+            f"({batch / t:.2f} pairs/s)", flush=True)
 
 
 if __name__ == "__main__":

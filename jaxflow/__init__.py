@@ -3,7 +3,7 @@
 The package, lowest layer first (a module imports its own package and the layers below it only;
 tests/test_imports.py checks this):
 
-    errors, configs, configfile, determinism, compile_cache, distributed   shared helpers
+    errors, configs, configfile, determinism, compile_cache, host_memory, distributed   helpers
     geometry/     neighbours, rigid motions, registration, frames, visibility
     data/         datasets, point files, sampling, batching
     network/      the model, its layers, checkpoints

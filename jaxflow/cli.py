@@ -26,7 +26,7 @@ from typing import Any, Callable
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from jaxflow import configfile, determinism
+from jaxflow import configfile, determinism, host_memory
 from jaxflow.errors import ConfigError, JaxflowError
 
 EXIT_USER_ERROR = 2
@@ -233,7 +233,8 @@ def _print_help(description: str | None, full: bool):
                   f"{flags_help}\n" + (f"\n{rest}\n" if rest else ""))
 
 
-def _parse_flags(argv: list[str], config_names=()) -> list[str]:
+def _parse_flags(argv: list[str], config_names=(),
+                 host_memory_default=host_memory.RELEASE) -> list[str]:
   try:
     argv = flags.FLAGS(argv)
   except flags.Error as e:
@@ -261,22 +262,27 @@ def _parse_flags(argv: list[str], config_names=()) -> list[str]:
         text.append(configfile.describe_settings(chosen, f"method.{flags.FLAGS.method}") + "\n")
     _write_and_exit("".join(text))
   from jaxflow import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)
-  note = compile_cache.enable(flags.FLAGS.compilation_cache)  # (before anything compiles)
-  if note:
+  try:  # before jax starts its threads, before anything compiles
+    notes = [host_memory.keep(flags.FLAGS.host_memory, host_memory_default),
+             compile_cache.enable(flags.FLAGS.compilation_cache)]
+  except ValueError as e:
+    fail(str(e))
+  for note in filter(None, notes):
     print(f"note: {note}", file=sys.stderr)
   return argv
 
 
 def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = None,
         config_files: dict[str, str | None] | None = None, renamed: dict[str, str] | None = None,
-        description: str | None = None):
+        description: str | None = None, host_memory_default: str = host_memory.RELEASE):
   """absl's `app.run(main)` with `guard`; flag and config errors also become one line and exit 2.
 
   `config_files` maps each config-file flag that `define_flags` defines to its default file (or
   None): the file and every `--NAME.FIELD` of the command line are checked before absl sees them
   (ml_collections loads a default file, overrides applied, as soon as its flag is defined). --help
   shows main's module docstring and the flags `define_flags` defines (exit 0); `renamed`: more old
-  flag names -> new ones than RENAMED.
+  flag names -> new ones than RENAMED. `host_memory_default`: whether malloc keeps freed memory
+  when neither --host_memory nor $JAXFLOW_HOST_MEMORY says (jaxflow.host_memory).
   """
   config_files = config_files or {}
   check_renamed(sys.argv, {**RENAMED, **(renamed or {})})
@@ -300,6 +306,10 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
                       "second run reads back what the first compiled (default: "
                       "$JAXFLOW_COMPILATION_CACHE, else ~/.cache/jaxflow/xla; 'off': none; "
                       "jaxflow.compile_cache).")
+  flags.DEFINE_enum("host_memory", None, list(host_memory.CHOICES), "keep: malloc keeps the memory a "
+                    "compiled program frees for its next call (no fresh page faults; the process "
+                    "holds what it took); release: malloc as it is. Default: "
+                    f"$JAXFLOW_HOST_MEMORY, else {host_memory_default} (jaxflow.host_memory).")
   for name in sorted(set(flags.FLAGS) - before):  # --help shows sys.argv[0]'s key flags
     if "." not in name:  # the config's fields: --print_config lists them
       flags.FLAGS.register_key_flag_for_module(sys.argv[0], flags.FLAGS[name])
@@ -308,4 +318,4 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
     _print_help(description or sys.modules[main.__module__].__doc__,
                 full=help_asked[0] == "--helpfull")
   app.run(lambda argv: guard(main, argv),
-          flags_parser=lambda argv: _parse_flags(argv, list(config_files)))
+          flags_parser=lambda argv: _parse_flags(argv, list(config_files), host_memory_default))

@@ -13,7 +13,7 @@ of that name when the working directory has none.
 import sys
 from pathlib import Path
 
-from jaxflow import cli
+from jaxflow import cli, host_memory
 
 
 def _define_flags():
@@ -66,7 +66,8 @@ def main(argv):
 
 def run():
   """The console script `jaxflow-train`."""
-  cli.run(main, _define_flags, {"config": None})
+  # The training step's temporaries are reused, not faulted in afresh (jaxflow.host_memory).
+  cli.run(main, _define_flags, {"config": None}, host_memory_default=host_memory.KEEP)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,9 @@ CACHE = os.environ.setdefault(
   "JAX_COMPILATION_CACHE_DIR", os.path.join(
     tempfile.gettempdir(), f"jaxflow-test-xla-cache-{hashlib.sha1(bytes(ROOT)).hexdigest()[:10]}"))
 jax.config.update("jax_compilation_cache_dir", CACHE)
+# Every program, however quick to compile (JAX skips those under a second by default): the xdist
+# workers compile the same small programs (the smoke model's steps, the methods' stages).
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 # ... and compiled with XLA's backend optimisation off: with no cache (a fresh clone) the suite took
 # 18:14 instead of 22:56 (2-core CPU). The programs compute the same up to rounding (LLVM's passes
 # only), so tests that compare two processes' numbers give both of them these flags (`xla_flags`).

@@ -13,7 +13,7 @@ LONG_ON_PURPOSE = {"jaxflow.data.synthetic"}  # the scene generator: one idea, m
 LAYERS = (
   ("jaxflow", "jaxflow.errors"),
   ("jaxflow.configs", "jaxflow.configfile", "jaxflow.determinism", "jaxflow.compile_cache",
-   "jaxflow.distributed"),
+   "jaxflow.host_memory", "jaxflow.distributed"),
   ("jaxflow.geometry",),
   ("jaxflow.data", "jaxflow.network"),
   ("jaxflow.methods", "jaxflow.lidar", "jaxflow.viz"),
