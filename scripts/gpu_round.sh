@@ -3,7 +3,9 @@
 # under 10 minutes each, from the repository root there. What a call reports lands in $OUT (the
 # device tool's folder; runs/gpu_out when unset), packed so that it comes back (at most 8 files).
 #
-#   bash scripts/gpu_round.sh bench             # voxel_cells, custom_gradients, model_speed
+#   bash scripts/gpu_round.sh bench             # the network's table against the official
+#                                               # PV-RAFT's (benchmarks.network_gpu), the
+#                                               # selections (benchmarks.selection): ~4 minutes
 #   bash scripts/gpu_round.sh device            # the GPU round, one call of < 10 minutes: the
 #                                               # GPU-marked tests, model_speed at both precisions
 #                                               # and with --deterministic's flag, the methods
@@ -45,11 +47,15 @@ fi
 
 case "${1:-}" in
   bench)
+    # The network's table (benchmarks/NETWORK_GPU.md) and the selections, in a few minutes.
+    if [[ -n ${DRY:-} ]]; then  # toy sizes: checks the commands, measures nothing
+      net=(--points 256 --iters 2 --train_iters 1 --repeats 1) sel=(--points 1024 --repeats 1)
+    else
+      net=() sel=()
+    fi
     { nvidia-smi -L || true
-      "$PY" -m benchmarks.voxel_cells --points 8192 --candidates 512 --iters 32 --train
-      "$PY" -m benchmarks.custom_gradients --points 4096 --candidates 256 --iters 16
-      "$PY" -m benchmarks.model_speed --points 8192 --iters 32 --train \
-        --configs default_cpu,default_full,pvraft
+      "$PY" -m benchmarks.network_gpu "${net[@]}" --set remat_iterations=true
+      "$PY" -m benchmarks.selection "${sel[@]}"
     } 2>&1 | tee "$OUT/bench.txt"
     ;;
   device)

@@ -40,3 +40,17 @@ def test_a_spent_deadline_skips_every_step(tmp_path):
   log = _dry_round(tmp_path, DEADLINE="5")  # under 10 s left from the start: nothing runs
   assert "== devices: skipped (the round's 5 s are spent)" in log
   assert "== methods: skipped (the round's 5 s are spent)" in log and "exit" not in log
+
+
+@pytest.mark.slow
+def test_dry_bench_prints_the_network_table_and_the_selections(tmp_path):
+  env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHON": sys.executable, "OUT": str(tmp_path),
+         "DRY": "1", "PYTHONPATH": str(REPO)}
+  proc = subprocess.run(["bash", "scripts/gpu_round.sh", "bench"], cwd=REPO, env=env,
+                        capture_output=True, text=True, timeout=1200)
+  assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+  text = (tmp_path / "bench.txt").read_text()
+  for row in ("| pvraft | inference, B=1, 2 iterations |", "| pvraft | train, B=2, 1 iterations",
+              "| default_full | train, B=2", "| kNN, 32 of 1024 | 2 |"):
+    assert row in text, text
+  assert "DIFFERS" not in text  # every way of selecting returned lax.top_k's indices

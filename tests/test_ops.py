@@ -75,6 +75,47 @@ def test_setconv_matches_loop(seed, features):
   close(got[0], ref.setconv(numpy_params(variables), f, xyz, nbr))
 
 
+def dense_setconv(p, f_BxNxC, xyz_BxNx3, nbr_BxNxK):
+  """SetConv with its edge tensor written out (the reference's form), in jnp for autodiff."""
+  def norm(x, q):  # GroupNorm, 8 groups, over every axis but the batch's
+    g = x.reshape(*x.shape[:-1], 8, x.shape[-1] // 8)
+    axes = tuple(range(1, x.ndim - 1)) + (x.ndim,)
+    mean = g.mean(axis=axes, keepdims=True)
+    var = jnp.square(g - mean).mean(axis=axes, keepdims=True)
+    return ((g - mean) / jnp.sqrt(var + 1e-5)).reshape(x.shape) * q["scale"] + q["bias"]
+  leaky = lambda x: jnp.where(x >= 0, x, 0.1 * x)
+  edges = jnp.concatenate([ops.gather(f_BxNxC, nbr_BxNxK) - f_BxNxC[:, :, None],
+                           ops.gather(xyz_BxNx3, nbr_BxNxK) - xyz_BxNx3[:, :, None]], axis=-1)
+  mm = lambda a, w: jnp.matmul(a, w, precision="highest")  # no TF32 on a GPU
+  x = leaky(norm(mm(edges, p["fc1"]["kernel"]), p["gn1"])).max(axis=2)
+  x = leaky(norm(mm(x, p["fc2"]["kernel"]), p["gn2"]))
+  return leaky(norm(mm(x, p["fc3"]["kernel"]), p["gn3"]))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_setconv_with_negative_norm_scales_and_its_gradient(seed):
+  # A negative scale turns the norm's map over: the max of the normalised edges is then the
+  # smallest edge's; the gradient must follow it.
+  rng = np.random.default_rng(seed)
+  xyz = cloud(seed)
+  f = rng.normal(size=(40, 16)).astype(np.float32)
+  nbr = ref.knn(xyz, 8)
+  args = (jnp.asarray(f)[None], jnp.asarray(xyz)[None], jnp.asarray(nbr)[None])
+  module = SetConv(32)  # fc1 width 24
+  params = module.init(jax.random.PRNGKey(seed), *args)["params"]
+  signs = np.where(np.arange(24) % 3 == 0, -1.0, 1.0).astype(np.float32)
+  params = {**params, "gn1": {"scale": jnp.asarray(signs * rng.uniform(0.5, 1.5, 24)),
+                              "bias": jnp.asarray(rng.normal(size=24), jnp.float32)}}
+  got = module.apply({"params": params}, *args)
+  close(got[0], ref.setconv(numpy_params({"params": params}), f, xyz, nbr))
+  loss = lambda fn: lambda p, feats: jnp.sum(jnp.sin(3.0 * fn(p, feats)))
+  ours = jax.grad(loss(lambda p, x: module.apply({"params": p}, x, *args[1:])), (0, 1))(
+    params, args[0])
+  dense = jax.grad(loss(lambda p, x: dense_setconv(p, x, *args[1:])), (0, 1))(params, args[0])
+  for a, b in zip(jax.tree_util.tree_leaves(ours), jax.tree_util.tree_leaves(dense)):
+    close(a, b, rtol=1e-4)
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("similarity", ["sum", "product"])
 def test_gcl_matches_loop(seed, similarity):

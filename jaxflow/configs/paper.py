@@ -42,7 +42,10 @@ def model_config() -> ml_collections.ConfigDict:
   m.refine_widths = ()  # graph refinement GCL widths; () = the paper's 256, 128, 64.
   m.corr_chunk = 0  # >0: build the top-k correlation this many pc1 rows at a time (memory ~ N).
   # True: the gradient recomputes each iteration instead of storing its activations. Same values;
-  # 5.5x less training memory and 8% faster on the CPU (benchmarks/MODEL.md); GPU cost unmeasured.
+  # a PV-RAFT training step on an H200 (B=2, 8192 points) 15.4 -> 5.3 GB of temporaries in the
+  # same time, 98 vs 100 ms (benchmarks/NETWORK_GPU.md); 5.5x less memory on the CPU. Not the
+  # default: two CPU processes training together abort with it (gloo: a collective's size
+  # mismatch; tests/test_distributed.py).
   m.remat_iterations = False
   # Every matmul of the network and its kNN: "highest" (exact float32 on every backend, what the
   # official PyTorch code computes and the CPU tests check), "high" (TF32 on Ampere/Hopper GPUs),
@@ -52,6 +55,10 @@ def model_config() -> ml_collections.ConfigDict:
   # The voxel branch's form: "auto" (by the device it is compiled for: a scatter on the CPU, a
   # comparison with every cell elsewhere), "scatter" or "compare". Same values either way.
   m.voxel_cells = "auto"
+  # How the kNN graphs and the top-k candidates are selected: "auto" (by the device it is compiled
+  # for: blocks of a few hundred entries on a GPU or TPU, lax.top_k on the CPU), "blockwise" or
+  # "sort" (lax.top_k: a full sort of each row on a GPU). The same neighbours in the same order.
+  m.selection = "auto"
   return m
 
 

@@ -6,6 +6,8 @@ Every function works on a batch: points `B x N x 3`, neighbour indices `B x N x 
 import jax
 import jax.numpy as jnp
 
+from jaxflow.geometry import select
+
 
 def squared_distances(a_BxNx3: jax.Array, b_BxMx3: jax.Array,
                       precision: str = "highest") -> jax.Array:
@@ -48,24 +50,25 @@ def map_row_chunks(fn, xs, chunk: int):
 
 
 def knn(query_BxNx3: jax.Array, points_BxMx3: jax.Array, k: int, chunk: int = 0,
-        precision: str = "highest") -> jax.Array:
+        precision: str = "highest", selection: str = "auto") -> jax.Array:
   """Indices `B x N x k'` of the k' = min(k, M) points nearest to each query (a query in
   `points` finds itself): a cloud smaller than k uses all its points as neighbours.
 
   With `chunk` > 0 the distance matrix is built `chunk` query rows at a time (memory ~ chunk x M);
-  `precision` is that of its matmul (squared_distances).
+  `precision` is that of its matmul (squared_distances); `selection` how the k are selected
+  (select.FORMS: the same neighbours in the same order every way).
   """
   k = min(k, points_BxMx3.shape[1])
   # Centred coordinates keep the |a|^2 + |b|^2 - 2ab form exact enough far from the origin.
   centre_Bx1x3 = jnp.mean(points_BxMx3, axis=1, keepdims=True)
   points_BxMx3 = jax.lax.stop_gradient(points_BxMx3 - centre_Bx1x3)
 
-  def select(q_BxCx3):
+  def nearest(q_BxCx3):
     d_BxCxM = squared_distances(jax.lax.stop_gradient(q_BxCx3 - centre_Bx1x3), points_BxMx3,
                                 precision)
-    return jax.lax.top_k(-d_BxCxM, k)[1]
+    return select.top_k(-d_BxCxM, k, selection)[1]
 
-  return map_row_chunks(select, (query_BxNx3,), chunk)
+  return map_row_chunks(nearest, (query_BxNx3,), chunk)
 
 
 def gather(values_BxMxC: jax.Array, idx_BxNxK: jax.Array) -> jax.Array:

@@ -16,7 +16,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from jaxflow.geometry import ops
+from jaxflow.geometry import ops, select
 from jaxflow.network.layers import GroupNorm, dense, lax_precision
 
 # model.voxel_cells: how the voxel branch adds candidates into their cells (same values, the sums
@@ -29,22 +29,23 @@ VOXEL_CELLS = ("auto", "scatter", "compare")
 
 
 def truncated_correlation(f1_BxNxC, f2_BxMxC, xyz2_BxMx3, k: int, chunk: int = 0,
-                          precision: str = "highest"):
+                          precision: str = "highest", selection: str = "auto"):
   """Top-k of corr = F1 F2^T / sqrt(C) per pc1 point (sorted, largest first).
 
   Returns (corr_BxNxK, xyz_BxNxKx3). With `chunk` > 0 the N x M matrix is built `chunk` rows at a
-  time, so memory grows with N (not N x M). `precision`: the matmul's (model.precision).
+  time, so memory grows with N (not N x M). `precision`: the matmul's (model.precision);
+  `selection`: how the k are selected (select.FORMS: the same candidates in the same order).
   """
   c = f1_BxNxC.shape[-1]
   k = min(k, f2_BxMxC.shape[1])
 
-  def select(f1_chunk):
+  def candidates(f1_chunk):
     corr = jnp.einsum("bnc,bmc->bnm", f1_chunk, f2_BxMxC, precision=lax_precision(precision))
     corr = corr / jnp.sqrt(jnp.float32(c))
-    values, idx = jax.lax.top_k(corr, k)
+    values, idx = select.top_k(corr, k, selection)
     return values, ops.gather(xyz2_BxMx3, idx)
 
-  return ops.map_row_chunks(select, (f1_BxNxC,), chunk)
+  return ops.map_row_chunks(candidates, (f1_BxNxC,), chunk)
 
 
 def planar(xyz_BxNxKx3):

@@ -5,6 +5,7 @@ import functools
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxflow.geometry import ops
 
@@ -35,11 +36,109 @@ def leaky_relu(x):
   return nn.leaky_relu(x, negative_slope=0.1)
 
 
+def edge_values(z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK):
+  """z_j - z_i + w . (x_j - x_i) of every edge i -> j (z None: 0): B x N x K x C.
+
+  The x part is written out as D products per channel, not a matmul, so that XLA fuses it with
+  the gathers into whatever reduces the edges: no edge tensor is stored.
+  """
+  edges = 0.0 if z_BxNxC is None else ops.gather(z_BxNxC, nbr_BxNxK) - z_BxNxC[:, :, None, :]
+  for d in range(x_BxNxD.shape[-1]):
+    x = x_BxNxD[..., d]
+    offset_BxNxK = jax.vmap(lambda v, i: v[i])(x, nbr_BxNxK) - x[:, :, None]
+    edges = edges + offset_BxNxK[..., None] * w_DxC[d]
+  return edges
+
+
+def _edge_at(k_BxNxC, z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK):
+  """edge_values at neighbour slot k of each point and channel: B x N x C."""
+  j_BxNxC = jnp.take_along_axis(nbr_BxNxK, k_BxNxC, axis=2)
+  edge = 0.0
+  if z_BxNxC is not None:
+    edge = jnp.take_along_axis(z_BxNxC, j_BxNxC, axis=1) - z_BxNxC
+  for d in range(x_BxNxD.shape[-1]):
+    x = x_BxNxD[..., d, None]
+    edge = edge + (jnp.take_along_axis(jnp.broadcast_to(x, j_BxNxC.shape), j_BxNxC, axis=1)
+                   - x) * w_DxC[d]
+  return edge
+
+
+@jax.custom_vjp
+def edge_extreme(z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK, lowest_Bx1xC):
+  """max over neighbours of edge_values, min where `lowest`: B x N x C.
+
+  Its gradient goes to the one edge that attains it (the first, in a tie). Autodiff of a max
+  finds that edge by comparing the edges with the max, and a GPU that recomputes the edges in
+  another fused kernel may round them otherwise and find none.
+  """
+  return _edge_extreme_fwd(z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK, lowest_Bx1xC)[0]
+
+
+def _edge_extreme_fwd(z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK, lowest_Bx1xC):
+  edges = edge_values(z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK)
+  signed = jnp.where(lowest_Bx1xC[:, :, None], -edges, edges)
+  k_BxNxC = jnp.argmax(signed, axis=2).astype(nbr_BxNxK.dtype)
+  extreme = jnp.where(lowest_Bx1xC, jnp.min(edges, axis=2), jnp.max(edges, axis=2))
+  return extreme, (k_BxNxC, z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK, lowest_Bx1xC)
+
+
+def _edge_extreme_bwd(residuals, g_BxNxC):
+  k_BxNxC, z, x, w, nbr, lowest = residuals
+  _, vjp = jax.vjp(lambda z_, x_, w_: _edge_at(k_BxNxC, z_, x_, w_, nbr), z, x, w)
+  return (*vjp(g_BxNxC), None, np.zeros(lowest.shape, jax.dtypes.float0))
+
+
+edge_extreme.defvjp(_edge_extreme_fwd, _edge_extreme_bwd)
+
+
+class EdgeNormMax(nn.Module):
+  """max over neighbours j of GroupNorm(edge i -> j) per point and channel (`edge_values`).
+
+  GroupNorm as `GroupNorm` (8 groups, its parameters "scale" and "bias", exact two-pass variance)
+  over every edge of a cloud. The edge values are recomputed where they are used, in the sums and
+  maxes XLA fuses them into: no B x N x K x C tensor is written. The norm is an increasing
+  (scale >= 0) or decreasing affine map of each channel, so the max of the normalised edges is the
+  normalised max (or min) of the edges, to the bit (`edge_extreme`).
+  """
+
+  groups: int = 8
+  epsilon: float = 1e-5
+
+  @nn.compact
+  def __call__(self, z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK):
+    b, n, k = nbr_BxNxK.shape
+    c = w_DxC.shape[-1]
+    scale = self.param("scale", nn.initializers.ones, (c,))
+    bias = self.param("bias", nn.initializers.zeros, (c,))
+    edges_BxNxKxC = edge_values(z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK)
+    grouped = edges_BxNxKxC.reshape(b, n, k, self.groups, c // self.groups)
+    mean_BxG = jnp.mean(grouped, axis=(1, 2, 4))
+    var_BxG = jnp.mean(jnp.square(grouped - mean_BxG[:, None, None, :, None]), axis=(1, 2, 4))
+    per_channel = lambda v_BxG: jnp.repeat(v_BxG, c // self.groups, axis=-1)[:, None, :]
+    mul_Bx1xC = per_channel(jax.lax.rsqrt(var_BxG + self.epsilon)) * scale
+    extreme_BxNxC = edge_extreme(z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK,
+                                 jax.lax.stop_gradient(mul_Bx1xC < 0))
+    return (extreme_BxNxC - per_channel(mean_BxG)) * mul_Bx1xC + bias
+
+
+class Kernel(nn.Module):
+  """A bias-free nn.Dense's parameter alone ("kernel", D x C, nn.Dense's initialiser)."""
+
+  features: int
+
+  @nn.compact
+  def __call__(self, inputs: int):
+    return self.param("kernel", nn.linear.default_kernel_init, (inputs, self.features))
+
+
 class SetConv(nn.Module):
   """PointNet-style graph layer: per-edge MLP, max over neighbours, then two point-wise layers.
 
-  Edge feature of i -> j: concat(f_j - f_i, p_j - p_i). Group statistics of the first norm run over
-  all points and all neighbours, before the max (as the reference's 2D GroupNorm).
+  Edge feature of i -> j: concat(f_j - f_i, p_j - p_i) -> fc1 -> GroupNorm over all points and
+  neighbours (the reference's 2D GroupNorm) -> LeakyReLU -> max over neighbours. fc1 has no bias,
+  so fc1 of an edge is W_f f_j - W_f f_i + W_p (p_j - p_i): the feature part is one matmul per
+  point (K times fewer flops), the offsets' part a few products per edge, and no edge tensor is
+  stored (EdgeNormMax).
   """
 
   features: int
@@ -49,12 +148,16 @@ class SetConv(nn.Module):
   def __call__(self, f_BxNxC, xyz_BxNx3, nbr_BxNxK):
     c_in = f_BxNxC.shape[-1]
     mid = (c_in + self.features) // 2 if c_in % 2 == 0 else self.features // 2
-    f_BxNxKxC = ops.gather(f_BxNxC, nbr_BxNxK) - f_BxNxC[:, :, None, :]
-    v_BxNxKx3 = ops.gather(xyz_BxNx3, nbr_BxNxK) - xyz_BxNx3[:, :, None, :]
-    x = jnp.concatenate([f_BxNxKxC, v_BxNxKx3], axis=-1)
+    w_DxM = Kernel(mid, name="fc1")(c_in + 3)
+    if c_in <= 3:  # coordinates or a flow: every part as offsets, which keep their digits
+      z_BxNxM = None
+      x_BxNxD = jnp.concatenate([f_BxNxC, xyz_BxNx3], axis=-1)
+    else:
+      z_BxNxM = jnp.einsum("bnc,cm->bnm", f_BxNxC, w_DxM[:c_in],
+                           precision=lax_precision(self.precision))
+      x_BxNxD, w_DxM = xyz_BxNx3, w_DxM[c_in:]
     fc = lambda width, name: dense(width, self.precision, use_bias=False, name=name)
-    x = leaky_relu(GroupNorm(name="gn1")(fc(mid, "fc1")(x)))
-    x = jnp.max(x, axis=2)
+    x = leaky_relu(EdgeNormMax(name="gn1")(z_BxNxM, x_BxNxD, w_DxM, nbr_BxNxK))
     x = leaky_relu(GroupNorm(name="gn2")(fc(self.features, "fc2")(x)))
     x = leaky_relu(GroupNorm(name="gn3")(fc(self.features, "fc3")(x)))
     return x
@@ -74,11 +177,23 @@ def _similarity(support, cos, similarity: str):
   return support + cos if similarity == "sum" else nn.relu(cos) * support
 
 
+def cosines(unit_v_Xx3, unit_e_3xC, precision="highest"):
+  """unit_v . unit_e for every row of unit_v and column of unit_e: X x C.
+
+  On the CPU one matmul (XLA's CPU backend stores the B x N x K x LC result either way, and a
+  matmul's is the only copy); elsewhere three products, which XLA fuses with the gathers into
+  the max over neighbours, so that no such tensor is stored (benchmarks/NETWORK_GPU.md). Decided
+  when XLA lowers the program for its device.
+  """
+  matmul = lambda v, e: jnp.einsum("...d,dc->...c", v, e, precision=lax_precision(precision))
+  products = lambda v, e: sum(v[..., d, None] * e[d] for d in range(3))
+  return jax.lax.platform_dependent(unit_v_Xx3, unit_e_3xC, cpu=matmul, default=products)
+
+
 def edge_similarity(support_BxMxLC, unit_v_BxNxKx3, unit_e_3xLC, nbr_BxNxK, similarity,
                     precision="highest"):
   """sim(j, l) of every neighbour j, per point and channel: B x N x K x LC."""
-  cos_BxNxKxLC = jnp.einsum("bnkd,dc->bnkc", unit_v_BxNxKx3, unit_e_3xLC,
-                            precision=lax_precision(precision))
+  cos_BxNxKxLC = cosines(unit_v_BxNxKx3, unit_e_3xLC, precision)
   return _similarity(ops.gather(support_BxMxLC, nbr_BxNxK), cos_BxNxKxLC, similarity)
 
 

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import ml_collections
 
-from jaxflow.geometry import ops
+from jaxflow.geometry import ops, select
 from jaxflow.network.correlation import (VOXEL_CELLS, PointVoxelCorrelation, planar,
                                          truncated_correlation)
 from jaxflow.network.encoder import GraphEncoder, SetConvEncoder
@@ -30,7 +30,8 @@ class SceneFlowNet(nn.Module):
   """Graph-based scene flow network; with encoder="setconv", cell="gru", refine="setconv" it is
   PV-RAFT. The context features (width C) split into the initial hidden state tanh(first C/2)
   and the context input relu(last C/2). `precision` is that of every matmul, the kNN's included
-  (layers.PRECISIONS); `voxel_cells` the voxel branch's form (correlation.VOXEL_CELLS). What kind
+  (layers.PRECISIONS); `voxel_cells` the voxel branch's form (correlation.VOXEL_CELLS); `selection`
+  how the kNN graphs and the candidates are selected (select.FORMS). What kind
   each field is (architecture, parameter-free, runtime): jaxflow.network.model_fields."""
 
   encoder: str = "graph"
@@ -50,12 +51,16 @@ class SceneFlowNet(nn.Module):
   remat_iterations: bool = False
   precision: str = "highest"
   voxel_cells: str = "auto"
+  selection: str = "auto"
 
   def setup(self):
     lax_precision(self.precision)  # a clear error for a misspelt name, before anything traces
     if self.voxel_cells not in VOXEL_CELLS:
       raise ValueError(f"model.voxel_cells must be one of {', '.join(VOXEL_CELLS)}, got "
                        f"{self.voxel_cells!r}")
+    if self.selection not in select.FORMS:
+      raise ValueError(f"model.selection must be one of {', '.join(select.FORMS)}, got "
+                       f"{self.selection!r}")
     if self.encoder not in DEFAULT_WIDTHS:
       raise ValueError(f"model.encoder must be 'graph' or 'setconv', got {self.encoder!r}")
     widths = tuple(self.widths) or DEFAULT_WIDTHS[self.encoder]
@@ -100,14 +105,15 @@ class SceneFlowNet(nn.Module):
     if refine and self.refine == "none":
       raise ValueError("refine=True asked of a model configured with refine='none'")
     if graphs is None:
-      nbr1_BxNxK = ops.knn(pc1_BxNx3, pc1_BxNx3, self.knn, self.corr_chunk, self.precision)
-      nbr2_BxMxK = ops.knn(pc2_BxMx3, pc2_BxMx3, self.knn, self.corr_chunk, self.precision)
+      nbr1_BxNxK, nbr2_BxMxK = (
+        ops.knn(pc, pc, self.knn, self.corr_chunk, self.precision, self.selection)
+        for pc in (pc1_BxNx3, pc2_BxMx3))
     else:
       nbr1_BxNxK, nbr2_BxMxK = graphs
     f1 = self.feature_encoder(pc1_BxNx3, nbr1_BxNxK)
     f2 = self.feature_encoder(pc2_BxMx3, nbr2_BxMxK)
     corr_BxNxK, cand_xyz_BxNxKx3 = truncated_correlation(
-      f1, f2, pc2_BxMx3, self.truncate_k, self.corr_chunk, self.precision
+      f1, f2, pc2_BxMx3, self.truncate_k, self.corr_chunk, self.precision, self.selection
     )
     cand_xyz_3xBxNxK = jnp.stack(planar(cand_xyz_BxNxKx3))  # once, not in every iteration
     context = self.context_encoder(pc1_BxNx3, nbr1_BxNxK)

@@ -42,6 +42,7 @@ MODEL_FIELDS = {
   "remat_iterations": Field("runtime", added=False),
   "precision": Field("runtime", added="highest"),
   "voxel_cells": Field("runtime", added="auto"),
+  "selection": Field("runtime", added="auto"),
 }
 
 # The refinement's own fields: stage 2 initialises the refinement afresh, so they may differ from
