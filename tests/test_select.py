@@ -1,4 +1,6 @@
-"""jaxflow.geometry.select: every form returns lax.top_k's values and indices, in its order."""
+"""jaxflow.geometry.select: the blocks return lax.top_k's values and indices, in its order."""
+
+import re
 
 import jax
 import jax.numpy as jnp
@@ -30,15 +32,25 @@ def test_blockwise_equals_a_stable_sort_with_many_ties(shape, k, block):
   np.testing.assert_array_equal(np.asarray(values), want_values)
 
 
-@pytest.mark.parametrize("form", select.FORMS)
-def test_every_form_returns_lax_top_k(form):
+def test_blocks_return_lax_top_k_on_gaussian_rows():
   rng = np.random.default_rng(1)
   x = jnp.asarray(rng.normal(size=(2, 4, 4096)).round(2), jnp.float32)  # a few ties
   for k in (32, 512):
-    values, index = jax.jit(lambda v: select.top_k(v, k, form))(x)
+    values, index = jax.jit(lambda v: select.top_k(v, k, "blockwise"))(x)
     want_values, want_index = jax.lax.top_k(x, k)
     np.testing.assert_array_equal(np.asarray(index), np.asarray(want_index))
     np.testing.assert_array_equal(np.asarray(values), np.asarray(want_values))
+
+
+def test_auto_takes_blocks_where_the_program_is_lowered_for_a_gpu():
+  # Lowered, not run: a CPU can lower for CUDA. The top-k calls' operands say which form it took.
+  x = jnp.zeros((2, 4, 4096))
+  operands = {}
+  for platform in ("cpu", "cuda"):
+    text = jax.jit(lambda v: select.top_k(v, 32, "auto")).trace(x).lower(
+      lowering_platforms=(platform,)).as_text()
+    operands[platform] = sorted(set(re.findall(r"top_k.*?tensor<([\dx]+)xf32>", text)))
+  assert operands == {"cpu": ["2x4x4096"], "cuda": ["2x4x16x256", "2x4x512"]}
 
 
 def test_block_lengths_measured_on_a_gpu():

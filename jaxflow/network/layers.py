@@ -43,10 +43,9 @@ def edge_values(z_BxNxC, x_BxNxD, w_DxC, nbr_BxNxK):
   the gathers into whatever reduces the edges: no edge tensor is stored.
   """
   edges = 0.0 if z_BxNxC is None else ops.gather(z_BxNxC, nbr_BxNxK) - z_BxNxC[:, :, None, :]
+  offsets_BxNxKxD = ops.gather(x_BxNxD, nbr_BxNxK) - x_BxNxD[:, :, None, :]
   for d in range(x_BxNxD.shape[-1]):
-    x = x_BxNxD[..., d]
-    offset_BxNxK = jax.vmap(lambda v, i: v[i])(x, nbr_BxNxK) - x[:, :, None]
-    edges = edges + offset_BxNxK[..., None] * w_DxC[d]
+    edges = edges + offsets_BxNxKxD[..., d, None] * w_DxC[d]
   return edges
 
 
