@@ -5,7 +5,7 @@ benchmarks/SPEED.md.
 
 1. Stages: the real KITTI and FT3D pairs of ../shared/data (8192 points a cloud, the evaluation
    sampling, seed 0), the shipped checkpoint. Each pair runs twice, the second run is timed stage
-   by stage (registry.optimise_flow's `seconds`: every stage waited for), EPE of the result.
+   by stage (optimise.optimise_flow's `seconds`: every stage waited for), EPE of the result.
 2. Commands: `python -m jaxflow.predict` on KITTI 000002's clouds three times in new processes
    (an empty compilation cache, the same cache again, and `--compilation_cache off`), wall seconds
    of the whole command.
@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflow.data import eval_batches, open_dataset
-from jaxflow.methods import registry
+from jaxflow.methods import optimise, registry
 from jaxflow.network import checkpointing
 
 DATA = pathlib.Path(__file__).absolute().parent.parent.parent / "shared" / "data"
@@ -38,8 +38,8 @@ ROOT = pathlib.Path(__file__).absolute().parent.parent
 def stages(pairs: int | None):
   model, params, _, _, refine = checkpointing.load_for_inference(None)
   chosen = registry.settings("optimise")
-  start, iters = registry.start_network(model, 32, chosen)
-  network = jax.jit(registry.network_fn(start, iters, refine))
+  network = jax.jit(registry.network_for(model, 32, refine)(chosen.start_iters,
+                                                            chosen.start_candidates))
   sets = [("KITTI", f"kitti:{DATA / 'KITTI_processed_occ_final'}", ("test",)),
           ("FT3D", f"ft3d:{DATA / 'FlyingThings3D_subset_processed_35m'}", ("train_all", "val"))]
   rows = []
@@ -52,7 +52,7 @@ def stages(pairs: int | None):
         seconds, clock = {}, time.perf_counter()
         flow0 = jax.block_until_ready(network(params, pc1, pc2))
         seconds["network start"] = time.perf_counter() - clock
-        flow, _ = registry.optimise_flow(flow0, pc1, pc2, chosen, seconds=seconds)
+        flow, _ = optimise.optimise_flow(flow0, pc1, pc2, chosen, seconds=seconds)
       seconds.pop("start")
       mask = np.asarray(batch["mask"][0]) > 0
       epe = float(np.linalg.norm(np.asarray(flow)[0] - batch["flow"][0], axis=-1)[mask].mean())

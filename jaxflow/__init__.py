@@ -7,9 +7,9 @@ tests/test_imports.py checks this):
     geometry/     neighbours, rigid motions, registration, frames, visibility
     data/         datasets, point files, sampling, batching
     network/      the model, its layers, checkpoints
-    methods/      per-pair methods (network, nsfp, optimise) and their objectives
     lidar/        raw sweeps: ground, ego-motion, objects
     viz/          pictures and the 3D viewer
+    methods/      the flow methods by name (network, nsfp, optimise, lidar), objectives, optimisers
     evaluation/   metrics, the evaluation loop, reports, flow files, AV2 submissions
     training/     the training loop, losses, logs, events
     cli, inference                                  flags; flow for your own clouds (the API)

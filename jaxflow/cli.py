@@ -32,6 +32,8 @@ from jaxflow.errors import ConfigError, JaxflowError
 EXIT_USER_ERROR = 2
 # The settings evaluate.py and predict use when no --config is given (8192 points, 32 iterations).
 EVAL_CONFIG = f"{Path(__file__).absolute().parent / 'configs' / 'default.py'}:eval"
+# The lidar method's settings (jaxflow.lidar.sweep, predict --lidar) when no --sweep file is given.
+SWEEP_CONFIG = str(Path(__file__).absolute().parent / "configs" / "sweep.py")
 # Old spellings -> the flag that replaced them (every tool refuses the old one, naming the new).
 RENAMED = {"save-flows": "save_flows", "max-points": "max_points", "corr-chunk": "corr_chunk",
            "max-range": "max_range", "num-processes": "num_processes",
@@ -129,6 +131,22 @@ def method_fields(method: str) -> dict:
   return {field: value for (_, field), value in _METHOD_FIELDS.items()}
 
 
+def settings_config(method: str, lidar: bool = False):
+  """The config of the command line's settings file for `method` (the lidar method's --sweep), None
+  for a method whose settings are --method.NAME.FIELD; a ConfigError when --sweep is given for
+  such a method (unless `lidar`: predict --lidar --method X runs the sweep pipeline too)."""
+  from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
+
+  flag = registry.get(method).settings_flag
+  if flag is not None:
+    return flags.FLAGS[flag].value
+  given = flags.FLAGS["sweep"]
+  if not lidar and (given.present or config_flags.get_override_values(given)):
+    raise ConfigError(f"--sweep sets the lidar method's settings, but the method is {method} "
+                      "(--method lidar to run it)")
+  return None
+
+
 def check_renamed(argv: list[str], renamed: dict[str, str]):
   """fail() naming the new flag when argv spells a renamed or hyphenated one."""
   for arg in argv[1:]:
@@ -171,9 +189,12 @@ def define_run_flags(default_method: str):
   --objective, --iters, --max_points, --full, --corr_chunk, --seed, --save_flows."""
   from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
 
-  flags.DEFINE_enum("method", default_method, list(registry.METHODS), "network: the network alone "
-                    "(the paper's protocol); optimise: the network's flow refined per pair; nsfp: "
-                    f"the NSFP baseline, no checkpoint (docs/methods.md). Default {default_method}.")
+  flags.DEFINE_enum("method", default_method, list(registry.METHODS), "; ".join(
+    f"{name}: {m.summary}" for name, m in registry.REGISTRY.items())
+    + f" (docs/methods.md). Default {default_method}.")
+  config_flags.DEFINE_config_file(
+    "sweep", SWEEP_CONFIG, "--method lidar (predict --lidar): the sweep pipeline's settings "
+    "(units in --print_config)", lock_config=True)
   flags.DEFINE_integer("steps", None, "Cap the optimisation steps of nsfp / optimise.")
   flags.DEFINE_enum("objective", None, ["exact", "grid"], "--method nsfp: NSFP's objective, exact "
                     "(default: two-way Chamfer, k-d tree every step) or grid (one-way distance "
@@ -258,7 +279,7 @@ def _parse_flags(argv: list[str], config_names=(),
                                    flags.FLAGS.objective, method_fields(flags.FLAGS.method))
       except ConfigError as e:
         fail(str(e))
-      if chosen is not None:
+      if chosen is not None and registry.get(flags.FLAGS.method).settings_flag is None:
         text.append(configfile.describe_settings(chosen, f"method.{flags.FLAGS.method}") + "\n")
     _write_and_exit("".join(text))
   from jaxflow import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)

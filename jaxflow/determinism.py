@@ -11,8 +11,8 @@ predict) for GPUs.
   amplifies that. `enable` (the tools' `--deterministic`) sets XLA's
   `--xla_gpu_deterministic_ops=true`: deterministic scatters (XLA's scatter determinism
   expander, a sort-based fallback where it cannot apply) and autotuning that picks the same
-  kernels, at a cost in speed measured by `scripts/gpu_round.sh determinism` (not measured yet:
-  no GPU was lent to the session that wrote this). TPU programs are deterministic already.
+  kernels, at a cost in speed that `scripts/gpu_round.sh determinism` measures (not measured
+  yet). TPU programs are deterministic already.
 - Either way a different jax/XLA version, thread count or device may change the bits.
 XLA reads XLA_FLAGS once, when jax starts its first backend: `enable` must run before any
 computation, which the tools do while they parse their flags.

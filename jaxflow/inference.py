@@ -112,14 +112,18 @@ class Predictor:
     None: the model's own."""
     kwargs = dict(num_iters=num_iters, max_points=max_points, full=full, corr_chunk=corr_chunk,
                   seed=seed)
-    if lidar:
-      return sweep_prediction(lambda: self, pc1_Nx3, pc2_Mx3, names, up, max_range, ground_limits,
-                              use_network, sweep_settings, **kwargs)
-    up = up or frames.MODEL_UP
-    inner = self._predict(frames.to_model(as_cloud(pc1_Nx3, names[0], self.min_points), up),
+    if lidar or self.method == "lidar":  # the lidar method alone: no network for a camera's view
+      return sweep_prediction(None if self.method == "lidar" else lambda: self, pc1_Nx3, pc2_Mx3,
+                              names, up, max_range, ground_limits, use_network,
+                              sweep_settings if sweep_settings is not None or self.method != "lidar"
+                              else self.method_settings, **kwargs)
+    pc1 = as_cloud(pc1_Nx3, names[0], self.min_points)
+    up, note = frames.resolve_up(pc1, up, frames.MODEL_UP, names[0], ground_limits)
+    inner = self._predict(frames.to_model(pc1, up),
                           frames.to_model(as_cloud(pc2_Mx3, names[1], self.min_points), up),
                           **kwargs)
-    return dataclasses.replace(inner, flow=frames.from_model(inner.flow, up), up=up)
+    return dataclasses.replace(inner, flow=frames.from_model(inner.flow, up), up=up,
+                               notes=(note, *inner.notes) if note else inner.notes)
 
   def _predict(self, pc1_Nx3, pc2_Mx3, num_iters, max_points, full, corr_chunk, seed):
     corr_chunk = getattr(self.model, "corr_chunk", 0) if corr_chunk is None else corr_chunk
@@ -145,10 +149,12 @@ class Predictor:
     sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
     every_point = self.method == "optimise"  # the network sees samples, the optimiser every point
     if every_point:  # the network's flow of the samples starts optimise: the method's settings
-      start, num_iters = registry.start_network(self.model, num_iters, self.method_settings)
-      key = ("start", start.truncate_k, num_iters)
+      chosen = self.method_settings
+      key = ("start", chosen.start_candidates, chosen.start_iters or num_iters)
       if key not in self._fns:
-        self._fns[key] = registry.model_predict_fn(start, num_iters, self.refine, with_info=True)
+        network = registry.network_for(self.model, num_iters, self.refine)(
+          chosen.start_iters, chosen.start_candidates)
+        self._fns[key] = jax.jit(lambda *args: (network(*args), None))
       fn = self._fns[key]
     else:
       fn = self._fn(num_iters, getattr(self.model, "corr_chunk", 0), self.method)
@@ -174,9 +180,10 @@ def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: 
                      **kwargs) -> Prediction:
   """The Prediction of raw sweeps (jaxflow.lidar.sweep); `get_predictor()` gives the method's
   Predictor, called only when the method runs (a camera's view, or `use_network`): a 360-degree
-  sweep loads no network. `sweep_settings`: raw_sweep_flow's `settings`; `kwargs`:
-  Predictor.predict's sampling arguments."""
-  up = up or "z"
+  sweep loads no network (None: no method runs, the `lidar` method alone). `sweep_settings`:
+  raw_sweep_flow's `settings`; `kwargs`: Predictor.predict's sampling arguments."""
+  up, up_note = frames.resolve_up(as_cloud(pc1_Nx3, names[0], 3), up, "z", names[0],
+                                  ground_limits)
   sweep_settings = sweep.settings_of(sweep_settings)
   max_range = sweep_settings.max_range if max_range is None else max_range
   kwargs = {**dict(num_iters=DEFAULT_ITERS, max_points=DEFAULT_MAX_POINTS, full=False,
@@ -192,11 +199,13 @@ def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: 
     return inner[-1].flow
 
   clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
-  flow, info = sweep.raw_sweep_flow(frames.in_model_frame(estimate, up), *clouds, up=up,
+  flow_fn = None if get_predictor is None else frames.in_model_frame(estimate, up)
+  flow, info = sweep.raw_sweep_flow(flow_fn, *clouds, up=up,
                                     max_range=max_range, names=names,
                                     ground_limits=ground_limits, use_network=use_network,
                                     settings=sweep_settings)
   notes = inner[-1].notes if inner else tuple(n for n in [lopsided(*info.kept)] if n)
+  notes = (up_note, *notes) if up_note else notes
   return Prediction(np.asarray(flow, np.float32), notes, info.kept, info, up)
 
 
@@ -221,7 +230,8 @@ class DeferredPredictor:
               ground_limits: bool = True, use_network: bool = False,
               sweep_settings: ml_collections.ConfigDict | None = None, **kwargs) -> Prediction:
     if not lidar:
-      return self.get().predict(pc1_Nx3, pc2_Mx3, names=names, up=up, **kwargs)
+      return self.get().predict(pc1_Nx3, pc2_Mx3, names=names, up=up,
+                                ground_limits=ground_limits, **kwargs)
     return sweep_prediction(self.get, pc1_Nx3, pc2_Mx3, names, up, max_range, ground_limits,
                             use_network, sweep_settings, **kwargs)
 
@@ -278,7 +288,7 @@ def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = N
   chosen = registry.settings(method, steps, iters, objective, method_fields)
   if method not in registry.NEEDS_NETWORK:
     return Predictor(None, None, ml_collections.ConfigDict({"model": {"knn": 1}}), False,
-                     name="NSFP, no network", method=method, method_settings=chosen)
+                     name=f"{method}, no network", method=method, method_settings=chosen)
   model, params, saved, step, refine = checkpointing.load_for_inference(checkpoint, config,
                                                                         model_fields)
   return Predictor(model, params, saved, refine, method=method, method_settings=chosen,
@@ -333,13 +343,22 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
   return prediction.flow
 
 
-def read_cloud(path, columns: int | None = None) -> tuple[np.ndarray, str | None]:
-  """read_points(path, columns) and a note when non-finite rows were dropped (None otherwise)."""
+def read_cloud(path, columns: int | None = None) -> tuple[np.ndarray, str | None, np.ndarray]:
+  """read_points(path, columns), a note when non-finite rows were dropped (None otherwise) and
+  which of the file's rows the points are (N bool: False for a dropped row)."""
   with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
-    points = read_points(path, columns)
+    points, rows = read_points(path, columns, rows=True)
   notes = [str(w.message) for w in caught if "non-finite" in str(w.message)]
   for w in caught:
     if "non-finite" not in str(w.message):
       warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-  return points, (notes[0] if notes else None)
+  return points, (notes[0] if notes else None), rows
+
+
+def file_rows(flow_Nx3, rows_R) -> np.ndarray:
+  """A flow of the kept points as one row per row of the file (R x 3, float32): NaN where the
+  file's point was dropped (non-finite), so row i is always the flow of the file's i-th point."""
+  out = np.full((len(rows_R), 3), np.nan, np.float32)
+  out[rows_R] = flow_Nx3
+  return out

@@ -11,11 +11,13 @@ From Python: `jaxflow.inference.predict_flow(pc1_Nx3, pc2_Mx3, method=...)`, the
 
 PC1 and PC2 are any file `jaxflow.data.read_points` reads (.npy, .ply, .pcd, KITTI .bin, .xyz/.txt),
 in metres, in the models' frame (x left, y up, z forward; jaxflow.geometry.frames), or with --up z
-(the default with --lidar) or x: then rotated into it and the flow back. The output is float32 N x 3
-(.npy; --out FLOW.txt or FLOW.csv writes the same rows as text), one row per point of PC1, in file
-order: row i is the flow of the i-th point of PC1 that read_points keeps. read_points drops rows
-with a non-finite coordinate; when it does, the count is printed on stderr and those rows have no
-output row.
+(the default with --lidar) or x: then rotated into it and the flow back. Without --up, a cloud flat
+along one axis (a street scene: metres high, tens of metres across) is read with that axis up and a
+note says so; an --up that contradicts it is refused (--noground_limits: taken as given). The
+output is float32 N x 3 (.npy; --out FLOW.txt or FLOW.csv writes the same rows as text), one row
+per row of PC1's file, in file order: row i is the flow of PC1's i-th point. A row with a
+non-finite coordinate is left out of the estimate (the count is printed on stderr) and gets a NaN
+flow.
 
 Method (--method, jaxflow.methods.registry, docs/methods.md): `optimise` (the default, also the
 Python API's) refines the network's flow against the whole clouds; `network` is the network alone
@@ -64,9 +66,6 @@ from jaxflow.errors import ConfigError
 from jaxflow.evaluation import export, submission
 from jaxflow.methods import registry
 
-# --lidar's settings (jaxflow.lidar.sweep) when no --sweep file is given.
-SWEEP_CONFIG = str(pathlib.Path(__file__).absolute().parent / "configs" / "sweep.py")
-
 
 def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   from absl import flags  # pylint: disable=import-outside-toplevel
@@ -75,9 +74,6 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   config_flags.DEFINE_config_file(
     "config", cli.EVAL_CONFIG, "Evaluation settings (config.eval.num_points, "
     "config.eval.num_iters); the model comes from the checkpoint.", lock_config=True)
-  config_flags.DEFINE_config_file(
-    "sweep", SWEEP_CONFIG, "--lidar: the sweep pipeline's settings (units in --print_config)",
-    lock_config=True)
   flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "
                       "shipped jaxflow/checkpoints/jaxflow_synthetic/).")
   flags.DEFINE_string("out", None, "Write the flow here, one row per point of PC1: .npy "
@@ -91,11 +87,13 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
                     "--up), the sensor's ego-motion (GICP) and one rigid motion per moving "
                     "object; the method runs on a camera's view (the points within --max_range "
                     "off the ground), on a sweep only when --method is given (a start).")
-  flags.DEFINE_bool("ground_limits", True, "--lidar: refuse an --up under which the sweep's "
-                    "largest plane stands upright near the origin; --noground_limits skips it.")
+  flags.DEFINE_bool("ground_limits", True, "Refuse an --up along which PC1 is not flat while "
+                    "another axis is (a street scene is flat along its up axis) and, with --lidar, "
+                    "one under which the sweep's largest plane stands upright near the origin; "
+                    "--noground_limits skips both.")
   flags.DEFINE_enum("up", None, ["x", "y", "z"], "The clouds' up axis (z: LiDAR; y: the models' "
-                    "frame): rotated into the models' frame, the flow back. Default: z with "
-                    "--lidar, else y.")
+                    "frame): rotated into the models' frame, the flow back. Default: the axis PC1 "
+                    "is flat along (a note says so), else z with --lidar, y without.")
   flags.DEFINE_float("max_range", None, "--lidar: keep the points within this horizontal distance "
                      "(m) of the sensor (default --sweep.max_range, 35); 0: all.")
   flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
@@ -121,43 +119,50 @@ def main(argv):
              f"{' '.join(argv[1:]) or '(none)'}")
   pc1_path, pc2_path = argv[1:]
   config, model_fields = cli.run_settings(FLAGS.config)
-  method = FLAGS.method, FLAGS.steps, FLAGS.objective, FLAGS.iters, cli.method_fields(FLAGS.method)
+  # --method lidar is --lidar: a camera's view then runs the default method.
+  lidar = FLAGS.lidar or FLAGS.method == "lidar"
+  name = inference.DEFAULT_METHOD if FLAGS.method == "lidar" else FLAGS.method
+  method = name, FLAGS.steps, FLAGS.objective, FLAGS.iters, cli.method_fields(FLAGS.method)
   # A wrong --method.X.FIELD is said now, not when (if) the predictor loads.
-  registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective, method[-1])
+  registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective, method[-1],
+                    cli.settings_config(FLAGS.method, lidar))
   if not FLAGS.out and not FLAGS.save_flows and not FLAGS.submission:
     raise ConfigError("give --out FLOW.npy, --save_flows DIR or --submission DIR")
   out = pathlib.Path(FLAGS.out or "")
   if FLAGS.out:
     export.check_flow_path(out)
 
-  pc1, note1 = inference.read_cloud(pc1_path, FLAGS.columns)
-  pc2, note2 = inference.read_cloud(pc2_path, FLAGS.columns)
+  if FLAGS.render and FLAGS.render.endswith(".html"):  # its extra checked before the work
+    from jaxflow.viz import viewer  # pylint: disable=import-outside-toplevel
+    viewer.require_plotly()
+  pc1, note1, rows1 = inference.read_cloud(pc1_path, FLAGS.columns)
+  pc2, note2, _ = inference.read_cloud(pc2_path, FLAGS.columns)
   load = (FLAGS.checkpoint, config, model_fields, *method)
   # --lidar: the method runs on a camera's view, or as a start of the fits when --method is given;
   # a 360-degree sweep alone loads no checkpoint.
-  predictor = (inference.DeferredPredictor(*load) if FLAGS.lidar else
-               inference.load_predictor(*load))
-  use_method = FLAGS.lidar and FLAGS["method"].present
+  predictor = (inference.DeferredPredictor(*load) if lidar else inference.load_predictor(*load))
+  use_method = lidar and FLAGS["method"].present and FLAGS.method != "lidar"
   max_points, num_iters = config.eval.num_points, config.eval.num_iters
   prediction = predictor.predict(
     pc1, pc2, num_iters=num_iters, max_points=max_points, full=not max_points,
-    corr_chunk=None, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=FLAGS.lidar,
+    corr_chunk=None, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=lidar,
     up=FLAGS.up, max_range=FLAGS.max_range, ground_limits=FLAGS.ground_limits,
     use_network=use_method, sweep_settings=FLAGS.sweep)
   up = prediction.up
   if prediction.sweep is not None:
     print(f"note: {prediction.sweep.note()}", file=sys.stderr)
   flow_Nx3 = prediction.flow
+  flow_rows = inference.file_rows(flow_Nx3, rows1)  # one row per row of PC1's file
   written = []
   if FLAGS.out:
-    export.save_flow(out, flow_Nx3)
+    export.save_flow(out, flow_rows)
     written.append(out)
   if FLAGS.save_flows:
-    written.append(export.FlowSaver(FLAGS.save_flows).save(f"{pc1_path},{pc2_path}", flow_Nx3))
+    written.append(export.FlowSaver(FLAGS.save_flows).save(f"{pc1_path},{pc2_path}", flow_rows))
   written += submission.user_pair(FLAGS.submission, pc1_path, pc1, flow_Nx3, prediction.sweep)
   if note1:
-    print(f"note: {note1}; {written[0]} has one row per remaining PC1 row, in file order",
-          file=sys.stderr)
+    print(f"note: {note1}; {written[0]} has one row per PC1 row, in file order, NaN where the "
+          "point was dropped", file=sys.stderr)
   if note2:
     print(f"note: {note2}", file=sys.stderr)
   warnings = [n for n in prediction.notes if n.startswith("PC1 has")]
@@ -167,19 +172,20 @@ def main(argv):
   sweep_only = prediction.sweep is not None and prediction.sweep.ego.start != "flow_fn"
   if sweep_only:  # a 360-degree sweep: jaxflow.lidar.sweep's fits, the method did not run
     how = (f"ground, ego-motion and {len(prediction.sweep.objects.moved)} moving objects "
-           "(jaxflow.lidar.sweep)" + (f"; method {FLAGS.method}'s flow a start"
+           "(jaxflow.lidar.sweep)" + (f"; method {name}'s flow a start"
                                  if prediction.sweep.used_network else "; no method run"))
   else:
-    how = "ground and far points removed; " if FLAGS.lidar else ""
-    how += "; ".join(_used(name, n, max_points) for name, n in zip(("PC1", "PC2"), prediction.used))
-    if FLAGS.method == "optimise":
+    how = "ground and far points removed; " if lidar else ""
+    how += "; ".join(_used(cloud, n, max_points)
+                     for cloud, n in zip(("PC1", "PC2"), prediction.used))
+    if name == "optimise":
       how += f"; {predictor.method_settings.start_iters or num_iters} network iterations"
-    elif FLAGS.method == "network":
+    elif name == "network":
       how += f"; {num_iters} iterations"
-    how += f"; method {FLAGS.method}" + (" at every point" if FLAGS.method == "optimise" else "")
-    if FLAGS.method == "nsfp":
+    how += f"; method {name}" + (" at every point" if name == "optimise" else "")
+    if name == "nsfp":
       how += f" ({predictor.method_settings.objective} objective)"
-  source = predictor.name if not FLAGS.lidar or predictor.loaded else "no checkpoint loaded"
+  source = predictor.name if not lidar or predictor.loaded else "no checkpoint loaded"
   print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points ({how}; {source})",
         file=sys.stderr)
   for warning in warnings:
@@ -195,7 +201,7 @@ def main(argv):
 def run(default_method: str = inference.DEFAULT_METHOD, description: str | None = None):
   """The console script `jaxflow-predict` (`python -m jaxflow.nsfp`: default_method nsfp)."""
   cli.run(main, lambda: _define_flags(default_method),
-          {"config": cli.EVAL_CONFIG, "sweep": SWEEP_CONFIG}, description=description)
+          {"config": cli.EVAL_CONFIG, "sweep": cli.SWEEP_CONFIG}, description=description)
 
 
 if __name__ == "__main__":

@@ -73,7 +73,8 @@ def smoke_checkpoint(tmp_path_factory):
 # last files to start are short ones and the workers finish together (xdist's default order, by
 # the number of tests in a file, left the few-test files of minutes each for the end).
 LONGEST_FIRST = (
-  "test_methods.py", "test_distributed.py", "test_gpu_round.py", "test_docs.py", "test_model.py",
+  "test_methods.py", "test_method_matrix.py", "test_distributed.py", "test_gpu_round.py",
+  "test_docs.py", "test_model.py",
   "test_two_stage.py", "test_training.py", "test_resume.py", "test_predict.py",
   "test_evaluation.py", "test_cli.py", "test_precision.py", "test_install.py",
   "test_compile_cache.py", "test_ops.py",

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxflow.methods import bodies, registry
+from jaxflow.methods import bodies, optimise
 
 
 def _rotation(axis, degrees):
@@ -187,7 +187,7 @@ def test_optimise_ends_with_the_bodies_stage_of_each_pair():
   pc1, pc2, truth, body = _pair(n=1000)
   start = _stuck_start(pc1, truth, body)
   other = (pc1, pc2, np.zeros_like(start))  # the second pair of the batch: a zero start
-  flow = registry.rigid_bodies_flow(*map(np.stack, zip((pc1, pc2, start), other)), bodies.Settings())
+  flow = optimise.rigid_bodies_flow(*map(np.stack, zip((pc1, pc2, start), other)), bodies.Settings())
   assert flow.shape == (2, *pc1.shape)
   for i, (a, b, f) in enumerate(((pc1, pc2, start), other)):  # each pair gets its own bodies
     np.testing.assert_allclose(np.asarray(flow[i]), bodies.rigid_bodies(a, b, f)[0], atol=1e-6)

@@ -329,5 +329,5 @@ def test_method_settings_are_replaced_field_by_field_with_their_types_checked():
     with pytest.raises(ConfigError) as e:
       registry.settings("optimise", fields=fields)
     assert all(w in str(e.value) for w in words), (fields, str(e.value))
-  with pytest.raises(ConfigError, match="network has no settings"):
+  with pytest.raises(ConfigError, match="network has no --method.network"):
     registry.settings("network", fields={"steps": 3})

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from jaxflow.data import open_dataset
-from jaxflow.errors import ConfigError
+from jaxflow.errors import ConfigError, DataError
 from jaxflow.geometry import frames
 from jaxflow.lidar import ground
 
@@ -205,7 +205,8 @@ def test_predict_up_z_hands_the_network_a_y_up_sweep(predictor, monkeypatch):
   turn = turn_about(kabsch(p[static], p[static] + flow[static]), 2)
   truth = turn_about(scene.ego_rotation, 2)  # -2 deg: the world turns right, the sensor left
   assert truth == pytest.approx(-2.0) and turn == pytest.approx(truth, abs=1.5)
-  as_is = predictor.predict(pc1, pc2, up="y", max_points=2048, num_iters=8).flow
+  as_is = predictor.predict(pc1, pc2, up="y", max_points=2048, num_iters=8,
+                            ground_limits=False).flow
   epe = lambda f: np.linalg.norm(f - scene.flow[kept1], axis=1).mean()
   assert epe(flow) < 0.85 * epe(as_is)
 
@@ -241,6 +242,29 @@ def test_in_model_frame_rotates_the_clouds_in_and_the_flow_back():
   np.testing.assert_allclose(flow, pc1 * [0.0, 0.0, 1.0])  # sensor frame: (0, 0, z)
   assert frames.in_model_frame(lift, "y") is lift
   lift_jax = lambda params, a, b: (a * jnp.array([0.0, 1.0, 0.0]), {"steps": params})
-  out, info = frames.in_model_frame_jax(lift_jax, "z")(3, pc1[None], pc2[None])
-  np.testing.assert_allclose(np.asarray(out)[0], pc1 * [0.0, 0.0, 1.0], rtol=1e-6)
-  assert int(info["steps"]) == 3
+  for jitted in (True, False):
+    out, info = frames.in_frame(lift_jax, "z", jitted=jitted)(3, pc1[None], pc2[None])
+    np.testing.assert_allclose(np.asarray(out)[0], pc1 * [0.0, 0.0, 1.0], rtol=1e-6)
+    assert int(info["steps"]) == 3
+  # A method working z up (the lidar method) on y-up clouds: its z is their y.
+  rise = lambda params, a, b: a * jnp.array([0.0, 0.0, 1.0])
+  out = frames.in_frame(rise, "y", "z")(None, pc1[None], pc2[None])
+  np.testing.assert_allclose(np.asarray(out)[0], pc1 * [0.0, 1.0, 0.0], rtol=1e-6)
+  assert frames.in_frame(rise, "z", "z") is rise
+
+
+def test_a_cloud_flat_along_another_axis_is_read_with_it_up_or_refused():
+  """A z-up sweep given without --up is read z up (a note says so), with --up y refused naming
+  the flat axis, unless the check is off; FlyingThings3D-like clouds (no flat axis) keep y."""
+  scene = zup_scene.sweep_pair(n_ground=3000, reach=40.0)
+  assert frames.flat_axis(scene.pc1)[0] == "z"
+  assert frames.flat_axis(scene.pc1[:, [1, 2, 0]])[0] == "y"  # the same sweep, y up
+  up, note = frames.resolve_up(scene.pc1, None, "y", "a.npy")
+  assert up == "z" and "a.npy is flat along z" in note and "--up y" in note
+  with pytest.raises(DataError, match=r"a\.npy.*flat along z.*--up y.*give --up z"):
+    frames.resolve_up(scene.pc1, "y", "y", "a.npy")
+  assert frames.resolve_up(scene.pc1, "y", "y", "a.npy", check=False) == ("y", None)
+  assert frames.resolve_up(scene.pc1, "z", "y", "a.npy") == ("z", None)
+  cube = np.random.default_rng(0).uniform(-10, 10, (500, 3)) * [1.5, 0.9, 2.0]  # spreads 30/18/40
+  assert frames.flat_axis(cube)[0] is None
+  assert frames.resolve_up(cube, None, "y", "a.npy") == ("y", None)

@@ -16,7 +16,8 @@ LAYERS = (
    "jaxflow.host_memory", "jaxflow.distributed"),
   ("jaxflow.geometry",),
   ("jaxflow.data", "jaxflow.network"),
-  ("jaxflow.methods", "jaxflow.lidar", "jaxflow.viz"),
+  ("jaxflow.lidar", "jaxflow.viz"),
+  ("jaxflow.methods",),  # the lidar method runs jaxflow.lidar's pipeline
   ("jaxflow.evaluation",),
   ("jaxflow.training",),
   ("jaxflow.cli", "jaxflow.inference"),

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow.methods import optimiser, registry, rigid_clusters
+from jaxflow.methods import optimise, optimiser, registry, rigid_clusters
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -83,10 +83,10 @@ def test_clusters_and_their_rigid_motions():
                              _rotation(0.3), atol=1e-6)
 
 
-_TINY = registry.Optimise(
-  descent=dataclasses.replace(registry.Optimise().descent, steps=30, max_cells=2**15),
+_TINY = optimise.Optimise(
+  descent=dataclasses.replace(optimise.Optimise().descent, steps=30, max_cells=2**15),
   rigid_steps=20)
-_TINY_NSFP = dataclasses.replace(registry.NSFP, steps=20, max_cells=2**15, width=16, depth=2)
+_TINY_NSFP = dataclasses.replace(optimiser.NSFP, steps=20, max_cells=2**15, width=16, depth=2)
 _ZERO_NETWORK = lambda params, a, b: jnp.zeros_like(a)
 
 
@@ -203,7 +203,7 @@ def test_nsfp_command_errors_are_one_line(runs):
 
 @pytest.mark.parametrize("chosen", [
   dataclasses.replace(_TINY_NSFP, patience=3, min_delta=1.0),  # early stopping fires at once
-  dataclasses.replace(registry.Optimise().polish, steps=30),
+  dataclasses.replace(optimise.Optimise().polish, steps=30),
   dataclasses.replace(_TINY_NSFP, objective="grid")])
 def test_the_loop_driven_from_python_gives_the_compiled_loop_result(chosen):
   """optimiser.optimise_host_loop (searches between compiled blocks, what the methods run) and
@@ -220,3 +220,17 @@ def test_the_loop_driven_from_python_gives_the_compiled_loop_result(chosen):
   np.testing.assert_allclose(np.asarray(host_info["loss_best"]), np.asarray(info["loss_best"]),
                              rtol=1e-5)
   assert (np.asarray(info["steps"]) < chosen.steps).all() == (chosen.patience == 3)
+
+
+def test_a_long_optimisation_shows_its_steps_loss_and_time_left(capsys):
+  """NSFP's host loop draws a bar of steps with the lowest loss on stderr when asked (by default
+  only on a terminal: none here)."""
+  rng = np.random.default_rng(0)
+  pc1 = jnp.asarray(rng.normal(size=(1, 64, 3)), jnp.float32)
+  pc2 = pc1 + 0.1
+  chosen = dataclasses.replace(optimiser.NSFP, steps=12, width=16, depth=2, max_cells=2**15)
+  optimiser.optimise_host_loop(jnp.zeros_like(pc1), pc1, pc2, chosen)
+  assert "optimisation" not in capsys.readouterr().err  # not a terminal
+  optimiser.optimise_host_loop(jnp.zeros_like(pc1), pc1, pc2, chosen, progress=True)
+  err = capsys.readouterr().err
+  assert "mlp optimisation" in err and "12/12" in err and "loss=" in err, err

@@ -195,7 +195,7 @@ def callbacks(text: str) -> list[str]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", registry.METHODS)
+@pytest.mark.parametrize("method", [m for m in registry.METHODS if registry.get(m).compiles])
 def test_every_program_of_a_method_carries_the_precision_and_no_callback(method, tmp_path):
   """Every program a method compiles (the network, NSFP's MLPs and their gradients, the optimise
   stages' Kabsch, Rodrigues and rigid flows) states HIGHEST on every dot by default and the

@@ -142,7 +142,11 @@ def runs(files, workdir):
     "lidar": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_lidar.npy", *net, "--lidar",
                   "--iters", 2, "--save_flows", d / "flows"),
     "bad_up": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "o10.npy", *ck, "--lidar",
-                   "--up", "x"),  # no ground plane across the x axis
+                   "--up", "x"),  # the sweep is flat along z
+    "bad_up_ground": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "o15.npy", *ck, "--lidar",
+                          "--up", "x", "--noground_limits"),  # taken as given: no sweep check
+    "zup_plain": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_zup.npy", *net,
+                      "--iters", 1, "--max_points", 64),  # no --up, no --lidar: read z up
     "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *net,
                          "--config", os.path.join(ROOT, "configs", "default.py") + ":smoke"),
   }
@@ -172,7 +176,7 @@ def runs(files, workdir):
   ("objective_not_nsfp", ["--objective", "--method nsfp", "network"]),
   ("field_typo", ["method.optimise.bodies.inlir", "no field 'inlir'", "inlier"]),
   ("field_other_method", ["--method.nsfp.*", "the method is network"]),
-  ("bad_up", ["raw1.npy", "no ground plane", "x axis"]),
+  ("bad_up", ["raw1.npy", "flat along z", "--up x", "give --up z"]),
 ])
 def test_broken_input_is_one_line_and_exit_2(runs, case, words):
   rc, stdout, stderr = runs[case]
@@ -227,8 +231,11 @@ def test_larger_cloud_gives_one_row_per_input_point(runs, files):
 def test_dropped_rows_are_reported_and_output_aligns(runs, files):
   rc, _, stderr = runs["nan"]
   assert rc == 0, stderr
-  assert "dropped 2 of 150" in stderr and "one row per remaining PC1 row" in stderr
-  assert np.load(files / "flow_nan.npy").shape == (N1 - 2, 3)
+  assert "dropped 2 of 150" in stderr and "NaN where the point was dropped" in stderr
+  flow = np.load(files / "flow_nan.npy")
+  dropped = ~np.isfinite(np.load(files / "nan.npy")).all(1)
+  assert flow.shape == (N1, 3) and dropped.sum() == 2  # one row per row of the file
+  assert np.isnan(flow[dropped]).all() and np.isfinite(flow[~dropped]).all()
 
 
 def test_sampling_maps_flow_to_nearest_sampled_point(predictor, files, pair):
@@ -348,3 +355,15 @@ def test_size_warning_compares_the_clouds_after_the_lidar_cut(predictor):
   alike = predictor.predict(np.concatenate([raw1, extra]), raw1[400:], num_iters=2, lidar=True,
                             max_points=256, ground_limits=False)
   assert not any(n.startswith("PC1 has") for n in alike.notes), alike.notes
+
+
+@pytest.mark.slow
+def test_a_z_up_sweep_is_read_z_up_without_up_and_a_wrong_up_is_refused(runs, files):
+  """Without --up (and without --lidar) the z-up sweep is read z up and a note says so; --lidar
+  --up x is refused naming the flat axis (above); with --noground_limits it is taken as given."""
+  rc, _, stderr = runs["zup_plain"]
+  assert rc == 0, stderr
+  assert "raw1.npy is flat along z" in stderr and "read with z up" in stderr
+  assert np.load(files / "flow_zup.npy").shape == (len(np.load(files / "raw1.npy")), 3)
+  rc, _, stderr = runs["bad_up_ground"]
+  assert "flat along" not in stderr, stderr

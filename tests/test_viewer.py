@@ -101,3 +101,21 @@ def test_predict_renders_a_page_that_chromium_draws(tmp_path):
   if os.environ.get("JAXFLOW_DOCS_IMAGES"):
     (ROOT / "docs" / "images").mkdir(exist_ok=True)
     shutil.copy(tmp_path / "flow.png", ROOT / "docs" / "images" / "viewer.png")
+
+
+def test_predict_checks_the_viewer_extra_before_the_work(tmp_path):
+  """`predict --render X.html` without plotly stops at once, naming the extra, and writes no flow."""
+  blocked = tmp_path / "blocked" / "plotly"
+  blocked.mkdir(parents=True)
+  (blocked / "__init__.py").write_text("raise ImportError('plotly blocked for this test')\n")
+  scene = zup_scene.sweep_pair(n_ground=500)
+  np.save(tmp_path / "a.npy", scene.pc1)
+  np.save(tmp_path / "b.npy", scene.pc2)
+  root = pathlib.Path(__file__).absolute().parent.parent
+  env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "blocked"), str(root)])}
+  proc = subprocess.run([sys.executable, "-m", "jaxflow.predict", str(tmp_path / "a.npy"),
+                         str(tmp_path / "b.npy"), "--lidar", "--out", str(tmp_path / "f.npy"),
+                         "--render", str(tmp_path / "v.html")], env=env, capture_output=True,
+                        text=True, timeout=300)
+  assert proc.returncode == 2 and "jaxflow[viewer]" in proc.stderr, proc.stderr
+  assert not (tmp_path / "f.npy").exists()

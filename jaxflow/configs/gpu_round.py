@@ -5,7 +5,7 @@ the 2-core CPU rounds could not afford (configs/shipped.py trains on 2048-point 
     bash scripts/gpu_round.sh train 8     # on the GPU: resumes, trains 8 minutes, packs into $OUT
 
 Cut by time, not by steps (a device call lasts 10 minutes at most), hence the constant rate and the
-large num_steps. Not run yet: no GPU has been lent to this project's sessions so far.
+large num_steps. Not run on a GPU yet.
 """
 
 from jaxflow.configs import shipped

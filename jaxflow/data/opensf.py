@@ -24,6 +24,8 @@ pc1 = lidar(t0)[:, :3], pc2 = lidar(t1)[:, :3]. Options after the folder (", key
     with an eval_mask are pairs, as the challenge evaluates), else the non-ground points with
     |x|, |y| <= 50 m (ego frame); pc2 = its non-ground points in that box; ground and max_range
     are not used; a non-finite point there is an error, never dropped (the rows of a submission);
+    | sweep: the whole raw sweeps (every finite point, ground and far points included: what the
+    `lidar` method takes), scored on the challenge's points only (mask: as region=challenge's pc1);
   lidar=auto (default) | ego | sensor: the frame `lidar` is stored in. OpenSceneFlow's
     dataprocess/extract_av2.py stores the AV2 `lidar` in the up_lidar sensor frame since its commit
     2bd9036 (older files: the ego frame) while `flow`, `pose` and `ego_motion` stay in the ego
@@ -56,7 +58,7 @@ from jaxflow.errors import DataError
 DEFAULTS = {"ground": "remove", "max_range": 35.0, "frame": "ego", "region": "disc",
             "lidar": "auto", "calibration": ""}
 CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera"),
-           "region": ("disc", "challenge"), "lidar": ("auto", "ego", "sensor")}
+           "region": ("disc", "challenge", "sweep"), "lidar": ("auto", "ego", "sensor")}
 CHALLENGE_BOX_M = 50.0  # the challenge's points: non-ground, |x|, |y| <= 50 m (ego frame)
 DECISIVE_ROTATION = 5e-4  # rad (0.03 degrees): an ego rotation that tells the lidar frames apart
 TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward): frames
@@ -121,7 +123,7 @@ class OpenSceneFlow(Dataset):
         with h5py.File(path, "r") as f:
           keys = _sorted_keys(f, path)
           labelled = [(k0, k1) for k0, k1 in zip(keys, keys[1:]) if "flow" in f[k0]]
-          if self.options["region"] == "challenge" and any("eval_mask" in f[k] for k in keys):
+          if self.options["region"] != "disc" and any("eval_mask" in f[k] for k in keys):
             labelled = [(k0, k1) for k0, k1 in labelled if "eval_mask" in f[k0]]
           self.pairs += [(path, k0, k1) for k0, k1 in labelled]
       except OSError as e:
@@ -156,6 +158,8 @@ class OpenSceneFlow(Dataset):
     mask = frame0["flow_is_valid"][keep1]
     if "eval_mask" in frame0:
       mask = mask & frame0["eval_mask"][keep1]
+    if self.options["region"] == "sweep":  # scored on the challenge's points
+      mask = mask & _challenge_points(frame0)[keep1]
     category = frame0["flow_category_indices"][keep1].astype(np.uint8)
     return Pair(**arrays, mask=mask, foreground=category != 0, category=category,
                 ego_xy=np.ascontiguousarray(pc1[:, :2]), name=f"{path}:{k0}")
@@ -165,9 +169,11 @@ class OpenSceneFlow(Dataset):
     finite = np.isfinite(points).all(1)
     if "flow" in frame:
       finite &= np.isfinite(frame["flow"]).all(1)
-    if self.options["region"] == "challenge":
-      box = ~frame["ground_mask"] & (np.abs(points[:, :2]) <= CHALLENGE_BOX_M).all(1)
-      keep = frame["eval_mask"] if "eval_mask" in frame else box
+    if self.options["region"] == "sweep":
+      keep = finite
+      cuts = "region=sweep: the finite points"
+    elif self.options["region"] == "challenge":
+      keep = _challenge_points(frame)
       if "flow" in frame and not finite[keep].all():
         raise DataError(path, f"group {key}: {int((~finite[keep]).sum())} of the challenge's "
                         "points have a non-finite coordinate or flow")
@@ -219,6 +225,14 @@ def sweep_id(name: str) -> tuple[str, int]:
   if not file or not stamp.lstrip("-").isdigit():
     raise DataError(name, "not an opensf pair name (expected <log>.h5:<timestamp_ns>)")
   return pathlib.Path(file).stem, int(stamp)
+
+
+def _challenge_points(frame) -> np.ndarray:
+  """The Argoverse 2 challenge's points of a frame: its eval_mask, else the non-ground points with
+  |x|, |y| <= CHALLENGE_BOX_M (ego frame)."""
+  if "eval_mask" in frame:
+    return frame["eval_mask"].astype(bool)
+  return ~frame["ground_mask"] & (np.abs(frame["lidar"][:, :2]) <= CHALLENGE_BOX_M).all(1)
 
 
 _LABELLED = ("lidar", "ground_mask", "flow", "flow_is_valid", "flow_category_indices", "ego_motion")

@@ -46,8 +46,10 @@ def to_float32(array, path, what: str = "points") -> np.ndarray:
   return np.ascontiguousarray(array, dtype=np.float32)
 
 
-def check_cloud(array, path, what: str = "points", extra_columns: bool = False) -> np.ndarray:
-  """An N x 3 cloud (N x >= 3 with `extra_columns`, then cut to xyz) as float32, finite rows kept."""
+def check_cloud(array, path, what: str = "points", extra_columns: bool = False,
+                rows: bool = False) -> np.ndarray:
+  """An N x 3 cloud (N x >= 3 with `extra_columns`, then cut to xyz) as float32, finite rows kept;
+  `rows`: (cloud, which of the array's rows were kept, N bool)."""
   array = to_float32(array, path, what)
   ok_cols = array.ndim == 2 and (array.shape[1] >= 3 if extra_columns else array.shape[1] == 3)
   if not ok_cols:
@@ -55,8 +57,8 @@ def check_cloud(array, path, what: str = "points", extra_columns: bool = False) 
     raise DataError(path, f"{what} have shape {array.shape}, expected {expected}")
   xyz_Nx3 = array[:, :3]
   finite_N = np.isfinite(xyz_Nx3).all(axis=1)
-  xyz_Nx3 = drop_nonfinite(xyz_Nx3, finite_N, path, what)
-  return np.ascontiguousarray(xyz_Nx3)
+  xyz_Nx3 = np.ascontiguousarray(drop_nonfinite(xyz_Nx3, finite_N, path, what))
+  return (xyz_Nx3, finite_N) if rows else xyz_Nx3
 
 
 def drop_nonfinite(array, finite_N, path, what: str = "points"):
@@ -88,11 +90,12 @@ def load_npy(path) -> np.ndarray:
   return array
 
 
-def read_points(path, columns: int | None = None) -> np.ndarray:
+def read_points(path, columns: int | None = None, rows: bool = False) -> np.ndarray:
   """Reads a point file into N x 3 float32 (see module docstring for formats and conventions).
 
   columns: float32 values a point of a `.bin` file (None: BIN_COLUMNS, KITTI's 4); the other formats
-  say their layout themselves and ignore it.
+  say their layout themselves and ignore it. rows: (points, which of the file's rows they are, a
+  bool per row: False where a non-finite row was dropped).
   """
   path = pathlib.Path(path)
   integer = isinstance(columns, (int, np.integer)) and not isinstance(columns, bool)
@@ -104,8 +107,8 @@ def read_points(path, columns: int | None = None) -> np.ndarray:
     raise DataError(path, f"unknown point file type {suffix or '(none)'!r}; expected one of "
                     + ", ".join(sorted(_READERS)))
   if suffix == ".bin":
-    return check_cloud(_read_bin(path, columns or BIN_COLUMNS), path, extra_columns=True)
-  return check_cloud(_READERS[suffix](path), path, extra_columns=True)
+    return check_cloud(_read_bin(path, columns or BIN_COLUMNS), path, extra_columns=True, rows=rows)
+  return check_cloud(_READERS[suffix](path), path, extra_columns=True, rows=rows)
 
 
 def _check_file(path: pathlib.Path):

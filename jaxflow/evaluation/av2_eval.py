@@ -236,8 +236,10 @@ def format_results(results: dict, dataset=None) -> str:
   bhead = ("bucketed 2024 (35 m box)", "static EPE", "dynamic normalised EPE", "points")
   text = tables.markdown_table(head, rows) + "\n" + tables.markdown_table(bhead, brows)
   on_challenge = (r.get("challenge_points", True) if dataset is None
-                  else getattr(dataset, "options", {}).get("region", "challenge") == "challenge")
+                  else getattr(dataset, "options", {}).get("region", "challenge")
+                  in ("challenge", "sweep"))
   if not on_challenge:
     text += ("\nnote: on the reader's points (ground removed, the max_range disc), not the "
-             "challenge's: open the dataset with region=challenge for those")
+             "challenge's: open the dataset with region=challenge (region=sweep: whole raw sweeps in, "
+             "scored on the challenge's points) for those")
   return text

@@ -67,7 +67,8 @@ class _Totals(dict):
     return dict(zip(self, distributed.sum_over_processes(list(self.values()))))
 
 
-def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair=None) -> dict:
+def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair=None,
+         warm_up: bool = True) -> dict:
   """Averages the metrics of `predict(*args, pc1, pc2)` over the pairs of `batches` (this
   process's; the sums are added over processes). `compiled` caches the compiled `predict` by input
   shapes (compiled before timing) across calls; `total`: the pairs expected, for the progress bar.
@@ -76,7 +77,8 @@ def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair
   av2_eval.Official; `on_pair(name, labels)` gets each pair's: SubmissionWriter.add). A `predict`
   that returns (flow, info) (an optimising method's `with_info`) adds "convergence": the pairs it
   optimised, those whose flow went non-finite (the starting flow is kept), those whose early
-  stopping fired, and the mean steps. `on_batch`: callables (batch, flow B x N x 3, numpy)."""
+  stopping fired, and the mean steps. `on_batch`: callables (batch, flow B x N x 3, numpy).
+  `warm_up`: a Python-driven `predict` is called once untimed on new shapes (its compilation)."""
   compiled = {} if compiled is None else compiled
   totals = _Totals()
   three_way = ThreeWayAverage()
@@ -91,7 +93,8 @@ def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair
         if hasattr(predict, "lower"):
           compiled[key] = predict.lower(*args, pc1, pc2).compile()
         else:  # driven from Python (registry.flow_fn): its stages compile at a first, untimed call
-          jax.block_until_ready(predict(*args, pc1, pc2))
+          if warm_up:  # (a method that compiles nothing, the lidar pipeline, is timed as it runs)
+            jax.block_until_ready(predict(*args, pc1, pc2))
           compiled[key] = predict
       start = time.perf_counter()
       pred = jax.block_until_ready(compiled[key](*args, pc1, pc2))
@@ -137,14 +140,16 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
   """Metrics of `method`'s flow (jaxflow.methods.registry: the network alone by default) on every pair of
   `dataset`, with pairs and ms_per_pair; `on_batch`: callables (batch, flow) of every batch (the
   points evaluated: sampled unless num_points None); `on_pair`: see `_run`."""
+  chosen = registry.get(method)
   predict = registry.model_predict_fn(model, num_iters, refine, method, method_settings,
-                             with_info=method != "network")
-  up = frames.dataset_up(dataset)  # opensf's ego frame: z up; rotated into the model's and back
-  predict = frames.in_model_frame_jax(predict, up)
+                                      with_info=not chosen.jitted)
+  # The clouds rotated into the method's frame and the flow back (opensf's ego frame: z up).
+  up = frames.dataset_up(dataset)
+  predict = frames.in_frame(predict, up, chosen.up, jitted=chosen.jitted)
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
   batches = ({**batch, "up": up} for batch in batches)  # the clouds' frame, for the pictures
   results = _run(predict, (distributed.local_copy(params),), batches, total=total,
-                 on_batch=on_batch, on_pair=on_pair)
+                 on_batch=on_batch, on_pair=on_pair, warm_up=chosen.compiles)
   results["output"] = "refined" if refine else "coarse"
   results.update(registry.describe(method, method_settings or registry.settings(method)))
   return results
@@ -233,7 +238,7 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
   if not dataset:
     raise ConfigError("no dataset to evaluate: give --dataset FORMAT:ROOT")
   model, params, step, refine = None, None, None, False
-  if method in registry.NEEDS_NETWORK:
+  if registry.get(method).needs_network:
     model, params, _, step, refine = checkpointing.load_for_inference(checkpoint, config,
                                                                       model_fields)
     checkpoint = checkpoint or checkpointing.SHIPPED_CHECKPOINT
@@ -247,7 +252,7 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
                  num_points=config.eval.num_points, num_iters=config.eval.num_iters)
   if "av2" in results:  # on the challenge's points, or the reader's (a note in the table)
     results["av2"]["challenge_points"] = (
-      getattr(ds, "options", {}).get("region", "challenge") == "challenge")
+      getattr(ds, "options", {}).get("region", "challenge") in ("challenge", "sweep"))
   if writer:
     results["submission"] = {"summary": writer.summary(), "note": writer.note}
   return results

@@ -3,7 +3,9 @@
     pc_model_Nx3 = to_model(pc_Nx3, up="z")          # a z-up sweep as the network wants it
     flow_Nx3 = from_model(flow_model_Nx3, up="z")    # and its flow back
     flow_fn = in_model_frame(flow_fn, up="z")        # the same around any (pc1, pc2) -> flow
+    predict = in_frame(predict, up="y", to="z")      # a batch method working z up, on y-up clouds
     up = dataset_up(dataset)                         # the up axis of a reader's clouds
+    up, note = resolve_up(pc1_Nx3, None, "y", "pc1")  # a user's cloud: the axis it is flat along
 
 THE MODEL FRAME. Every shipped model was trained in the benchmark readers' camera frame: x left,
 y up, z forward, metres, right-handed (x cross y = z). It is not "x right": that labelling of the
@@ -36,7 +38,7 @@ the axes, so a proper rotation (det +1, never a mirror). Flows are vectors: they
 
 import numpy as np
 
-from jaxflow.errors import ConfigError
+from jaxflow.errors import ConfigError, DataError
 
 MODEL_UP = "y"  # the models' up axis (x left, y up, z forward)
 UP_AXES = ("x", "y", "z")
@@ -96,14 +98,14 @@ def in_model_frame(flow_fn, up: str):
                                              up)
 
 
-def in_model_frame_jax(predict, up: str):
-  """`in_model_frame` for a jitted batch predict (params..., pc1 B x N x 3, pc2 B x M x 3) -> flow
-  B x N x 3 or (flow, info), as jaxflow.evaluation.evaluator's: jitted again, so `.lower` still works."""
-  if up_index(up) == up_index(MODEL_UP):
+def in_frame(predict, up: str, to: str = MODEL_UP, jitted: bool = False):
+  """`in_model_frame` for a batch predict (params..., pc1 B x N x 3, pc2 B x M x 3) -> flow B x N x
+  3 or (flow, info) that works in the frame with up axis `to`, given clouds with up axis `up`
+  (jaxflow.evaluation.evaluator's). `jitted`: predict is one jitted program, and so is the result
+  (`.lower` still works); otherwise the axes are permuted around the Python call."""
+  forward, back = permutation(up, to), [int(i) for i in np.argsort(permutation(up, to))]
+  if forward == [0, 1, 2]:
     return predict
-  import jax  # pylint: disable=import-outside-toplevel
-
-  forward, back = permutation(up), [int(i) for i in np.argsort(permutation(up))]
 
   def rotated(*args):
     *params, pc1, pc2 = args
@@ -112,7 +114,55 @@ def in_model_frame_jax(predict, up: str):
       return (out[0][..., back], *out[1:])
     return out[..., back]
 
+  if not jitted:
+    return rotated
+  import jax  # pylint: disable=import-outside-toplevel
+
   return jax.jit(rotated)
+
+
+# A street scene is flat along its up axis: a LiDAR sweep spans metres in height and tens of metres
+# across (real AV2 and KITTI sweeps, KITTI's camera-frame clouds: 0.05-0.14 of the next smallest
+# spread), FlyingThings3D's scenes are not (0.42-0.95 over its pairs).
+FLAT_RATIO = 0.25
+
+
+def flat_axis(points_Nx3, ratio: float = FLAT_RATIO):
+  """(axis, spreads): the axis ("x", "y" or "z") along which the cloud's spread (2nd to 98th
+  percentile, m) is under `ratio` times each other axis's, the up axis of a street scene; None
+  when no axis is that flat (or under 50 finite points)."""
+  p = np.asarray(points_Nx3, np.float64)
+  p = p[np.isfinite(p).all(1)]
+  if len(p) < 50:
+    return None, None
+  low, high = np.percentile(p, [2, 98], axis=0)
+  spreads = high - low
+  k = int(np.argmin(spreads))
+  return (UP_AXES[k] if spreads[k] < ratio * np.delete(spreads, k).min() else None), spreads
+
+
+def resolve_up(points_Nx3, up: str | None, default: str, name: str,
+               check: bool = True) -> tuple[str, str | None]:
+  """(up axis, note) of a cloud: `up` when given (a DataError naming `name` when the cloud is flat
+  along another axis, unless `check` is False); else the axis it is flat along, with a note when
+  that is not `default`; else `default`."""
+  flat, spreads = flat_axis(points_Nx3) if check or up is None else (None, None)
+  if up is not None:
+    up_index(up)  # a ConfigError for a wrong name
+    if flat is not None and flat != up:
+      raise DataError(name, f"the cloud is flat along {flat} ({_spreads(spreads)}), as a street "
+                      f"scene is along its up axis, not along --up {up}: give --up {flat} (or "
+                      f"--noground_limits, ground_limits=False in Python, if {up} is right)")
+    return up, None
+  if flat is None or flat == default:
+    return default, None
+  return flat, (f"{name} is flat along {flat} ({_spreads(spreads)}): read with {flat} up "
+                f"({describe(flat)}); --up {default} to read it as {describe(default)}")
+
+
+def _spreads(spreads) -> str:
+  spread = ", ".join(f"{a} {s:.1f} m" for a, s in zip(UP_AXES, spreads))
+  return spread + " from 2nd to 98th percentile"
 
 
 def dataset_up(dataset) -> str:

@@ -30,7 +30,8 @@ COLOURS = {"pc1": "#1f4fd6", "pc2": "#d62728", "pc1 + flow": "#15a336",
            "removed ground": "#a0a0a0", "dynamic": "#e8175d"}
 
 
-def _plotly():
+def require_plotly():
+  """plotly.graph_objects; a ConfigError naming the extra to install when plotly is missing."""
   try:
     import plotly.graph_objects as go  # pylint: disable=import-outside-toplevel
   except ImportError:
@@ -80,7 +81,7 @@ def figure(pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", ego_flow=None, ground1=Non
   """The plotly Figure of `write_html` (gt and mask are accepted for the views' common arguments;
   the page shows the prediction)."""
   del gt, mask
-  go = _plotly()
+  go = require_plotly()
   drawn = layers(pc1_Nx3, pc2_Mx3, flow_Nx3, ego_flow, ground1, ground2, max_range, up)
   relative = "relative to the ego-motion" if ego_flow is not None else "(no ego-motion given)"
   traces = []
