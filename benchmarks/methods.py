@@ -23,7 +23,7 @@ import time
 import jax
 import numpy as np
 
-from jaxflow import host_memory
+from jaxflow.runtime import host_memory
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.evaluation import evaluator
 from jaxflow.methods import registry

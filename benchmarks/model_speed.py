@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxflow import host_memory
+from jaxflow.runtime import host_memory
 from jaxflow.configs import ablation, default, pvraft
 from jaxflow.network.model import build_model
 from jaxflow.training import losses

@@ -3,7 +3,9 @@
 The package, lowest layer first (a module imports its own package and the layers below it only;
 tests/test_imports.py checks this):
 
-    errors, configs, configfile, determinism, compile_cache, host_memory, distributed   helpers
+    errors
+    configs/      the configs: training, the paper's runs, the sweep pipeline's settings
+    runtime/      config files, compilation cache, determinism, host memory, many processes
     geometry/     neighbours, rigid motions, registration, frames, visibility
     data/         datasets, point files, sampling, batching
     network/      the model, its layers, checkpoints

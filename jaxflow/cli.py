@@ -26,7 +26,7 @@ from typing import Any, Callable
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from jaxflow import configfile, determinism, host_memory
+from jaxflow.runtime import configfile, determinism, host_memory
 from jaxflow.errors import ConfigError, JaxflowError
 
 EXIT_USER_ERROR = 2
@@ -260,7 +260,7 @@ def _parse_flags(argv: list[str], config_names=(),
     argv = flags.FLAGS(argv)
   except flags.Error as e:
     fail(str(e))
-  if flags.FLAGS.deterministic:  # before anything starts jax's backend (jaxflow.determinism)
+  if flags.FLAGS.deterministic:  # before anything starts jax's backend (jaxflow.runtime.determinism)
     try:
       determinism.enable()
     except ConfigError as e:
@@ -282,7 +282,7 @@ def _parse_flags(argv: list[str], config_names=(),
       if chosen is not None and registry.get(flags.FLAGS.method).settings_flag is None:
         text.append(configfile.describe_settings(chosen, f"method.{flags.FLAGS.method}") + "\n")
     _write_and_exit("".join(text))
-  from jaxflow import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)
+  from jaxflow.runtime import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)
   try:  # before jax starts its threads, before anything compiles
     notes = [host_memory.keep(flags.FLAGS.host_memory, host_memory_default),
              compile_cache.enable(flags.FLAGS.compilation_cache)]
@@ -303,7 +303,7 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
   (ml_collections loads a default file, overrides applied, as soon as its flag is defined). --help
   shows main's module docstring and the flags `define_flags` defines (exit 0); `renamed`: more old
   flag names -> new ones than RENAMED. `host_memory_default`: whether malloc keeps freed memory
-  when neither --host_memory nor $JAXFLOW_HOST_MEMORY says (jaxflow.host_memory).
+  when neither --host_memory nor $JAXFLOW_HOST_MEMORY says (jaxflow.runtime.host_memory).
   """
   config_files = config_files or {}
   check_renamed(sys.argv, {**RENAMED, **(renamed or {})})
@@ -326,11 +326,11 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
   flags.DEFINE_string("compilation_cache", None, "Folder of JAX's persistent compilation cache: a "
                       "second run reads back what the first compiled (default: "
                       "$JAXFLOW_COMPILATION_CACHE, else ~/.cache/jaxflow/xla; 'off': none; "
-                      "jaxflow.compile_cache).")
+                      "jaxflow.runtime.compile_cache).")
   flags.DEFINE_enum("host_memory", None, list(host_memory.CHOICES), "keep: malloc keeps the memory a "
                     "compiled program frees for its next call (no fresh page faults; the process "
                     "holds what it took); release: malloc as it is. Default: "
-                    f"$JAXFLOW_HOST_MEMORY, else {host_memory_default} (jaxflow.host_memory).")
+                    f"$JAXFLOW_HOST_MEMORY, else {host_memory_default} (jaxflow.runtime.host_memory).")
   for name in sorted(set(flags.FLAGS) - before):  # --help shows sys.argv[0]'s key flags
     if "." not in name:  # the config's fields: --print_config lists them
       flags.FLAGS.register_key_flag_for_module(sys.argv[0], flags.FLAGS[name])

@@ -18,12 +18,13 @@ paper's protocol) by default; optimise and nsfp are the per-pair optimisation me
 docs/training.md) in the tables and the JSON, and --submission DIR writes the challenge's files
 (jaxflow.evaluation.submission). --save_flows DIR writes the flow of every pair (one .npy per pair,
 named by the pair), --render_dir DIR the Fig. 2 view of every pair (predict's --render FILE: one
-pair). Many processes: --coordinator, --num_processes, --process_id (jaxflow.distributed).
+pair). Many processes: --coordinator, --num_processes, --process_id (jaxflow.runtime.distributed).
 """
 
 import functools
 
-from jaxflow import cli, distributed
+from jaxflow import cli
+from jaxflow.runtime import distributed
 from jaxflow.evaluation import evaluator, export, reporting
 from jaxflow.methods import registry
 

@@ -97,6 +97,9 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   flags.DEFINE_float("max_range", None, "--lidar: keep the points within this horizontal distance "
                      "(m) of the sensor (default --sweep.max_range, 35); 0: all.")
   flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
+  flags.DEFINE_string("ego_out", None, "--lidar: also write the sensor's estimated motion here, "
+                      "a 4 x 4 matrix as text (x2 = R x1 + t, in the clouds' axes): the flow minus "
+                      "its flow R x + t - x is the world's own motion.")
 
 
 def _used(name: str, n: int, max_points: int | None) -> str:
@@ -128,6 +131,8 @@ def main(argv):
                     cli.settings_config(FLAGS.method, lidar))
   if not FLAGS.out and not FLAGS.save_flows and not FLAGS.submission:
     raise ConfigError("give --out FLOW.npy, --save_flows DIR or --submission DIR")
+  if FLAGS.ego_out and not lidar:
+    raise ConfigError("--ego_out writes the sweep pipeline's ego-motion: it needs --lidar")
   out = pathlib.Path(FLAGS.out or "")
   if FLAGS.out:
     export.check_flow_path(out)
@@ -160,6 +165,8 @@ def main(argv):
   if FLAGS.save_flows:
     written.append(export.FlowSaver(FLAGS.save_flows).save(f"{pc1_path},{pc2_path}", flow_rows))
   written += submission.user_pair(FLAGS.submission, pc1_path, pc1, flow_Nx3, prediction.sweep)
+  if FLAGS.ego_out:
+    written.append(export.save_motion(FLAGS.ego_out, prediction.sweep.motion))
   if note1:
     print(f"note: {note1}; {written[0]} has one row per PC1 row, in file order, NaN where the "
           "point was dropped", file=sys.stderr)

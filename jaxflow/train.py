@@ -13,7 +13,8 @@ of that name when the working directory has none.
 import sys
 from pathlib import Path
 
-from jaxflow import cli, host_memory
+from jaxflow import cli
+from jaxflow.runtime import host_memory
 
 
 def _define_flags():
@@ -46,7 +47,7 @@ def written(workdir) -> str:
 def main(argv):
   from absl import flags  # pylint: disable=import-outside-toplevel
   # Here, not at the top: --print_config and --help answer without loading jax.
-  from jaxflow import distributed  # pylint: disable=import-outside-toplevel
+  from jaxflow.runtime import distributed  # pylint: disable=import-outside-toplevel
   from jaxflow.training import run_log, trainer
 
   if len(argv) > 1:
@@ -66,7 +67,7 @@ def main(argv):
 
 def run():
   """The console script `jaxflow-train`."""
-  # The training step's temporaries are reused, not faulted in afresh (jaxflow.host_memory).
+  # The training step's temporaries are reused, not faulted in afresh (jaxflow.runtime.host_memory).
   cli.run(main, _define_flags, {"config": None}, host_memory_default=host_memory.KEEP)
 
 

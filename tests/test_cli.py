@@ -10,7 +10,8 @@ import pytest
 
 import numpy as np
 
-from jaxflow import cli, configfile, train
+from jaxflow import cli, train
+from jaxflow.runtime import configfile
 from jaxflow.configs import default
 from jaxflow.data import read_points
 from jaxflow.errors import CheckpointError

@@ -1,4 +1,4 @@
-"""The commands' persistent compilation cache (jaxflow.compile_cache): a second `predict` in a new
+"""The commands' persistent compilation cache (jaxflow.runtime.compile_cache): a second `predict` in a new
 process compiles nothing; a corrupt entry or an unwritable folder costs one line, never an error."""
 
 import json
@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from jaxflow import compile_cache
+from jaxflow.runtime import compile_cache
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # predict in a process that counts JAX's compilation-cache events and prints them at exit.

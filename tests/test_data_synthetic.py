@@ -78,11 +78,11 @@ def test_kernels_hit_the_surface_first(kind, size):
 
 def test_camera_and_object_motion_compose_by_hand():
   """Static world under a camera translation c: flow = -c; an object translated by m: flow = m - c."""
-  builder = S._Builder(np.eye(3), (0.3, -0.2, 1.0))
-  builder.add([(S.PLANE, S._ROT_X90, S._Z, (50, 0, 50), None)], np.eye(3), (0, 0, 20))
-  builder.add([(S.BOX, np.eye(3), S._Z, (1, 1, 1), None)], np.eye(3), (0, 0, 10), None, (0.5, 0.0, -0.25))
+  builder = S.Builder(np.eye(3), (0.3, -0.2, 1.0))
+  builder.add([(S.PLANE, S._ROT_X90, S.ZERO, (50, 0, 50), None)], np.eye(3), (0, 0, 20))
+  builder.add([(S.BOX, np.eye(3), S.ZERO, (1, 1, 1), None)], np.eye(3), (0, 0, 10), None, (0.5, 0.0, -0.25))
   turn = S.rotation((0, 1, 0), math.radians(10))
-  builder.add([(S.ELLIPSOID, np.eye(3), S._Z, (1, 1, 1), None)], np.eye(3), (3, 0, 12), turn)
+  builder.add([(S.ELLIPSOID, np.eye(3), S.ZERO, (1, 1, 1), None)], np.eye(3), (3, 0, 12), turn)
   scene = builder.scene()
   points, prim = S.render(scene, 0, S.things_grid(np.random.default_rng(0)))
   flow = S.warp(scene, points, prim) - points

@@ -1,4 +1,4 @@
-"""jaxflow.determinism: XLA_FLAGS gets XLA's deterministic GPU ops before the backend starts (and
+"""jaxflow.runtime.determinism: XLA_FLAGS gets XLA's deterministic GPU ops before the backend starts (and
 XLA honours XLA_FLAGS set then), a started backend is refused, and on the CPU two fresh processes
 give the same bits for the order-sensitive programs (scatter-add gradients, NSFP)."""
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from jaxflow import determinism
+from jaxflow.runtime import determinism
 from jaxflow.errors import ConfigError
 
 REPO = Path(__file__).absolute().parent.parent
@@ -30,7 +30,7 @@ def test_enable_sets_the_flag_before_the_backend_and_xla_reads_it(tmp_path):
   out = python(f"""
     import os
     import jax, jax.numpy as jnp
-    from jaxflow import determinism
+    from jaxflow.runtime import determinism
     os.environ["XLA_FLAGS"] = "--xla_gpu_deterministic_ops=false --xla_dump_to={tmp_path}"
     assert not determinism.enabled()
     determinism.enable()
@@ -95,7 +95,8 @@ def test_the_tools_flag_turns_it_on_before_main():
   --deterministic: main then finds the flag in XLA_FLAGS and no backend started yet."""
   code = """
     import os, sys
-    from jaxflow import cli, determinism
+    from jaxflow import cli
+    from jaxflow.runtime import determinism
     sys.argv = ["tool"] + sys.argv[1:]
     cli.run(lambda argv: print(os.environ.get("XLA_FLAGS"), determinism.backend_started()))
   """

@@ -1,4 +1,4 @@
-"""Many processes on the CPU (jaxflow.distributed): two local train.py processes joined by
+"""Many processes on the CPU (jaxflow.runtime.distributed): two local train.py processes joined by
 --coordinator on 127.0.0.1 (gloo collectives) train as one process with two devices does, write a
 checkpoint that one process evaluates, and resume together after one of them is SIGKILLed."""
 
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from conftest import xla_flags
-from jaxflow import distributed
+from jaxflow.runtime import distributed
 from jaxflow.configs import default
 from jaxflow.data import BatchLoader, eval_batches, open_dataset
 from jaxflow.errors import ConfigError

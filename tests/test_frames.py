@@ -268,3 +268,15 @@ def test_a_cloud_flat_along_another_axis_is_read_with_it_up_or_refused():
   cube = np.random.default_rng(0).uniform(-10, 10, (500, 3)) * [1.5, 0.9, 2.0]  # spreads 30/18/40
   assert frames.flat_axis(cube)[0] is None
   assert frames.resolve_up(cube, None, "y", "a.npy") == ("y", None)
+
+
+def test_rotation_between_any_two_up_axes_is_proper_and_inverts():
+  """rotation(up, to) takes the up axis to the up axis, is a rotation (det +1), and
+  rotation(to, up) is its inverse; the default target is the models' frame."""
+  for up in frames.UP_AXES:
+    for to in frames.UP_AXES:
+      r = frames.rotation(up, to)
+      np.testing.assert_array_equal(r @ np.eye(3)[frames.up_index(up)], np.eye(3)[frames.up_index(to)])
+      assert np.linalg.det(r) == pytest.approx(1.0)
+      np.testing.assert_array_equal(frames.rotation(to, up) @ r, np.eye(3))
+    np.testing.assert_array_equal(frames.rotation(up), frames.rotation(up, frames.MODEL_UP))

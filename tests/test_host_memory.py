@@ -1,4 +1,4 @@
-"""Host memory kept for reuse (jaxflow.host_memory): with it, a freed block's pages serve the next
+"""Host memory kept for reuse (jaxflow.runtime.host_memory): with it, a freed block's pages serve the next
 allocation (no fresh page faults, counted by the kernel); train keeps by default, the other
 commands release; --host_memory, else $JAXFLOW_HOST_MEMORY, decides; a bad value is one line."""
 
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from jaxflow import host_memory
+from jaxflow.runtime import host_memory
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BLOCK = 128 * 2**20  # bytes: far above glibc's largest mmap threshold (32 MiB)
@@ -37,7 +37,7 @@ def probe(argv=None):
 
 how = sys.argv[1]
 if how == "keep":
-  from jaxflow import host_memory
+  from jaxflow.runtime import host_memory
   print("NOTE", host_memory.keep())
 if how == "cli":  # the probe as a command's main; argv: the command's default, then its flags
   from jaxflow import cli

@@ -12,8 +12,7 @@ LONG_ON_PURPOSE = {"jaxflow.data.synthetic"}  # the scene generator: one idea, m
 # modules and the units of lower layers; units of one layer never import each other.
 LAYERS = (
   ("jaxflow", "jaxflow.errors"),
-  ("jaxflow.configs", "jaxflow.configfile", "jaxflow.determinism", "jaxflow.compile_cache",
-   "jaxflow.host_memory", "jaxflow.distributed"),
+  ("jaxflow.configs", "jaxflow.runtime"),
   ("jaxflow.geometry",),
   ("jaxflow.data", "jaxflow.network"),
   ("jaxflow.lidar", "jaxflow.viz"),

@@ -202,7 +202,7 @@ def test_every_program_of_a_method_carries_the_precision_and_no_callback(method,
   configured precision when one is set; none holds a host callback, with the searches on the host
   (the CPU's "auto") or on the device (an accelerator's): the k-d tree searches, the distance grids
   and the rigid-bodies stage run between compiled stages. JAX's persistent compilation cache keeps
-  only such programs (jaxflow.compile_cache), and a GPU program never waits on the host."""
+  only such programs (jaxflow.runtime.compile_cache), and a GPU program never waits on the host."""
   runs = {"HIGHEST": lowered_by_method(tmp_path, method),
           "DEFAULT": lowered_by_method(tmp_path, method, "default",
                                        **({} if method == "network" else {"search": "device"}))}

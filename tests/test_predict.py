@@ -140,7 +140,9 @@ def runs(files, workdir):
     "hyphenated": _cli(d / "pc1.npy", d / "pc2.npy", "--out", d / "o11.npy", *ck,
                        "--max-points", "100"),
     "lidar": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_lidar.npy", *net, "--lidar",
-                  "--iters", 2, "--save_flows", d / "flows"),
+                  "--iters", 2, "--save_flows", d / "flows", "--ego_out", d / "ego.txt"),
+    "method_lidar": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "flow_method_lidar.npy",
+                         *ck, "--method", "lidar"),  # the same as --lidar, no network start
     "bad_up": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "o10.npy", *ck, "--lidar",
                    "--up", "x"),  # the sweep is flat along z
     "bad_up_ground": _cli(d / "raw1.npy", d / "raw2.npy", "--out", d / "o15.npy", *ck, "--lidar",
@@ -304,6 +306,18 @@ def test_lidar_gives_every_raw_point_a_flow_and_saves_it(runs, files, predictor)
   # The flow itself is checked against a sweep's true ego-motion in tests/test_sweep.py.
   api = inference.predict_flow(raw1, raw2, num_iters=2, predictor=predictor, lidar=True, up="z")
   np.testing.assert_allclose(api, flow, atol=1e-4)
+  # --ego_out: the sensor's motion as a 4 x 4 matrix; every point no moving object claims (most of
+  # them here) has exactly its flow, R x + t - x.
+  ego = np.loadtxt(files / "ego.txt")
+  assert ego.shape == (4, 4) and np.allclose(ego[3], [0, 0, 0, 1])
+  np.testing.assert_allclose(ego[:3, :3] @ ego[:3, :3].T, np.eye(3), atol=1e-6)
+  static = np.linalg.norm(raw1 @ ego[:3, :3].T + ego[:3, 3] - raw1 - flow, axis=1) < 1e-4
+  assert static.mean() > 0.8, static.mean()
+  # --method lidar is --lidar without a method's start: the API's lidar method, the same flow.
+  rc, _, stderr = runs["method_lidar"]
+  assert rc == 0 and "no method run" in stderr and "no checkpoint loaded" in stderr, stderr
+  np.testing.assert_allclose(np.load(files / "flow_method_lidar.npy"),
+                             inference.predict_flow(raw1, raw2, method="lidar"), atol=1e-5)
 
 
 @pytest.mark.slow  # it reads the `runs` fixture (every command line at once)

@@ -9,7 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from jaxflow import configfile, inference
+from jaxflow import inference
+from jaxflow.runtime import configfile
 from jaxflow.configs import sweep as sweep_config
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.lidar import ego, sweep

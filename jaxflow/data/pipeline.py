@@ -102,7 +102,7 @@ class BatchLoader:
   8192) and trains on a window of num_points of them (`sampling.crop_pair`); 0 samples num_points.
   crop_mask_outside masks out of a window's loss the points whose flow leaves pc2's window.
   rows (start, stop): only the pairs start .. stop - 1 of each global batch (one process's part of
-  it, jaxflow.distributed.local_rows; the same pairs, sampled the same way, as in the whole batch).
+  it, jaxflow.runtime.distributed.local_rows; the same pairs, sampled the same way, as in the whole batch).
   Batch dict: float32 'pc1', 'pc2', 'flow' (B x N x 3), 'mask' (B x N, 1/0) and 'replaced' (int, the
   clouds sampled with replacement because they had fewer than num_points points).
   """

@@ -387,21 +387,21 @@ def _unit(rng):
 def _local_box(kind, size, bump) -> np.ndarray:
   """(centre, half extents) of a primitive's axis-aligned bounding box in its own frame."""
   if kind == ELLIPSOID:
-    return np.array([_Z, size * (1 + bump)])
+    return np.array([ZERO, size * (1 + bump)])
   if kind == CYLINDER:
-    return np.array([_Z, (size[0], size[1], size[0])])
+    return np.array([ZERO, (size[0], size[1], size[0])])
   if kind == SHELL:
     rb, half_angle, hh = size
     depth = rb * (1 - math.cos(half_angle))
     return np.array([(0, 0, -depth / 2), (rb * math.sin(min(half_angle, math.pi / 2)), hh, depth / 2)])
   if kind == TORUS:
-    return np.array([_Z, (size[0] + size[1], size[1], size[0] + size[1])])
+    return np.array([ZERO, (size[0] + size[1], size[1], size[0] + size[1])])
   if kind == PLANE:
-    return np.array([_Z, (size[0], 0, size[2])])
-  return np.array([_Z, size])  # BOX
+    return np.array([ZERO, (size[0], 0, size[2])])
+  return np.array([ZERO, size])  # BOX
 
 
-class _Builder:
+class Builder:
   """Collects objects (a rigid set of primitives with one motion) into a Scene; object 0 is the
   static world, which moves only with the sensor."""
 
@@ -438,14 +438,14 @@ class _Builder:
                  np.array([m[1] for m in self.motions]))
 
 
-_I = np.eye(3)
-_Z = (0.0, 0.0, 0.0)
+IDENTITY = np.eye(3)
+ZERO = (0.0, 0.0, 0.0)
 _ROT_X90 = rotation((1, 0, 0), math.pi / 2)  # local y -> z
 _ROT_XM90 = rotation((1, 0, 0), -math.pi / 2)  # local z -> y
 _ROT_Z90 = rotation((0, 0, 1), math.pi / 2)  # local y -> -x
 
 
-def _bump(rng, amplitude):
+def random_bump(rng, amplitude):
   return (amplitude, rng.normal(size=(3, 3)) * rng.uniform(2, 5), rng.uniform(0, 2 * np.pi, 3))
 
 
@@ -454,48 +454,48 @@ def _thing_parts(rng, s: float):
   u = lambda lo, hi: rng.uniform(lo, hi)
   choice = rng.integers(13)
   if choice == 0:
-    return [(BOX, _I, _Z, s * rng.uniform(0.3, 1.0, 3), None)]
+    return [(BOX, IDENTITY, ZERO, s * rng.uniform(0.3, 1.0, 3), None)]
   if choice == 1:
-    return [(ELLIPSOID, _I, _Z, s * rng.uniform(0.4, 1.0, 3), None)]
+    return [(ELLIPSOID, IDENTITY, ZERO, s * rng.uniform(0.4, 1.0, 3), None)]
   if choice == 2:
-    return [(CYLINDER, _I, _Z, (s * u(0.2, 0.6), s * u(0.4, 1.0), 0), None)]
+    return [(CYLINDER, IDENTITY, ZERO, (s * u(0.2, 0.6), s * u(0.4, 1.0), 0), None)]
   if choice == 3:
-    return [(TORUS, _I, _Z, (s * u(0.55, 0.8), s * u(0.12, 0.3), 0), None)]
+    return [(TORUS, IDENTITY, ZERO, (s * u(0.55, 0.8), s * u(0.12, 0.3), 0), None)]
   if choice == 4:  # thin plate
-    return [(BOX, _I, _Z, (s * u(0.6, 1.0), s * u(0.4, 1.0), s * u(0.01, 0.04)), None)]
+    return [(BOX, IDENTITY, ZERO, (s * u(0.6, 1.0), s * u(0.4, 1.0), s * u(0.01, 0.04)), None)]
   if choice == 5:  # bent plate
-    return [(SHELL, _I, _Z, (s * u(0.5, 1.5), u(0.5, 1.4), s * u(0.3, 0.9)), None)]
+    return [(SHELL, IDENTITY, ZERO, (s * u(0.5, 1.5), u(0.5, 1.4), s * u(0.3, 0.9)), None)]
   if choice == 6:  # rock
-    return [(ELLIPSOID, _I, _Z, s * rng.uniform(0.5, 0.9, 3), _bump(rng, u(0.05, 0.15)))]
+    return [(ELLIPSOID, IDENTITY, ZERO, s * rng.uniform(0.5, 0.9, 3), random_bump(rng, u(0.05, 0.15)))]
   if choice == 7:  # chair: seat, back, four legs
     w, leg = s * 0.5, s * 0.5
-    parts = [(BOX, _I, (0, 0, 0), (w, 0.06 * s, w), None),
-             (BOX, _I, (0, 0.5 * s, -w), (w, 0.5 * s, 0.05 * s), None)]
-    parts += [(CYLINDER, _I, (x * w * 0.85, -leg, z * w * 0.85), (0.05 * s, leg, 0), None)
+    parts = [(BOX, IDENTITY, (0, 0, 0), (w, 0.06 * s, w), None),
+             (BOX, IDENTITY, (0, 0.5 * s, -w), (w, 0.5 * s, 0.05 * s), None)]
+    parts += [(CYLINDER, IDENTITY, (x * w * 0.85, -leg, z * w * 0.85), (0.05 * s, leg, 0), None)
               for x in (-1, 1) for z in (-1, 1)]
     return parts
   if choice == 8:  # table: top and four legs
     w, d, leg = s, s * u(0.5, 0.9), s * 0.45
-    parts = [(BOX, _I, (0, leg, 0), (w, 0.05 * s, d), None)]
-    parts += [(BOX, _I, (x * w * 0.85, 0, z * d * 0.8), (0.06 * s, leg, 0.06 * s), None)
+    parts = [(BOX, IDENTITY, (0, leg, 0), (w, 0.05 * s, d), None)]
+    parts += [(BOX, IDENTITY, (x * w * 0.85, 0, z * d * 0.8), (0.06 * s, leg, 0.06 * s), None)
               for x in (-1, 1) for z in (-1, 1)]
     return parts
   if choice == 9:  # dumbbell
     r = s * u(0.25, 0.4)
-    return [(ELLIPSOID, _I, (-s + r, 0, 0), (r, r, r), None),
-            (ELLIPSOID, _I, (s - r, 0, 0), (r, r, r), None),
-            (CYLINDER, _ROT_Z90, _Z, (r * 0.3, s - r, 0), None)]
+    return [(ELLIPSOID, IDENTITY, (-s + r, 0, 0), (r, r, r), None),
+            (ELLIPSOID, IDENTITY, (s - r, 0, 0), (r, r, r), None),
+            (CYLINDER, _ROT_Z90, ZERO, (r * 0.3, s - r, 0), None)]
   if choice == 10:  # snowman
     r = s * 0.45
-    return [(ELLIPSOID, _I, (0, -r, 0), (r, r, r), None),
-            (ELLIPSOID, _I, (0, 0.45 * r, 0), (0.7 * r,) * 3, None),
-            (ELLIPSOID, _I, (0, 1.4 * r, 0), (0.45 * r,) * 3, None)]
+    return [(ELLIPSOID, IDENTITY, (0, -r, 0), (r, r, r), None),
+            (ELLIPSOID, IDENTITY, (0, 0.45 * r, 0), (0.7 * r,) * 3, None),
+            (ELLIPSOID, IDENTITY, (0, 1.4 * r, 0), (0.45 * r,) * 3, None)]
   if choice == 11:  # mushroom: stem and flat cap
-    return [(CYLINDER, _I, (0, -0.3 * s, 0), (0.2 * s, 0.5 * s, 0), None),
-            (ELLIPSOID, _I, (0, 0.25 * s, 0), (0.8 * s, 0.3 * s, 0.8 * s), None)]
+    return [(CYLINDER, IDENTITY, (0, -0.3 * s, 0), (0.2 * s, 0.5 * s, 0), None),
+            (ELLIPSOID, IDENTITY, (0, 0.25 * s, 0), (0.8 * s, 0.3 * s, 0.8 * s), None)]
   # arch: two pillars and a bent roof
-  return [(BOX, _I, (-0.7 * s, -0.2 * s, 0), (0.2 * s, 0.6 * s, 0.25 * s), None),
-          (BOX, _I, (0.7 * s, -0.2 * s, 0), (0.2 * s, 0.6 * s, 0.25 * s), None),
+  return [(BOX, IDENTITY, (-0.7 * s, -0.2 * s, 0), (0.2 * s, 0.6 * s, 0.25 * s), None),
+          (BOX, IDENTITY, (0.7 * s, -0.2 * s, 0), (0.2 * s, 0.6 * s, 0.25 * s), None),
           (SHELL, _ROT_XM90, (0, 0.4 * s, 0), (0.9 * s, 1.2, 0.25 * s), None)]
 
 
@@ -517,12 +517,12 @@ def things_scene(rng) -> Scene:
   activity = rng.uniform(*THINGS["activity"])
   cam_rot = rotation(_unit(rng), np.deg2rad(rng.uniform(0, THINGS["camera_deg"] * activity)))
   cam_pos = _unit(rng) * rng.uniform(0, THINGS["camera_m"] * activity)
-  builder = _Builder(cam_rot, cam_pos)
+  builder = Builder(cam_rot, cam_pos)
   depth = rng.uniform(*THINGS["wall_m"])
   tilt = THINGS["wall_tilt"]
   wall_rot = (rotation((1, 0, 0), rng.uniform(-tilt, tilt))
               @ rotation((0, 1, 0), rng.uniform(-tilt, tilt)))
-  builder.add([(PLANE, _ROT_X90, _Z, (80, 0, 50), None)], wall_rot, (0, 0, depth))
+  builder.add([(PLANE, _ROT_X90, ZERO, (80, 0, 50), None)], wall_rot, (0, 0, depth))
   for _ in range(rng.integers(5, 16)):
     z = rng.uniform(*THINGS["depth_m"])
     center = (rng.uniform(-1, 1) * THINGS_U * z, rng.uniform(-1, 1) * THINGS_V * z, z)
@@ -533,24 +533,24 @@ def things_scene(rng) -> Scene:
   return builder.scene()
 
 
-def _car_parts(rng):
+def car_parts(rng):
   """A car in its own frame (origin on the ground below its centre, heading +z): body and cabin.
 
   No wheels: below the body they would lie in the band (y < -1.4) that ground removal deletes.
   """
   w, length, h = rng.uniform(0.8, 0.95), rng.uniform(1.8, 2.4), rng.uniform(0.3, 0.4)
   body_y = 0.25 + h
-  return [(BOX, _I, (0, body_y, 0), (w, h, length), None),
-          (BOX, _I, (0, body_y + h + 0.3, -0.15 * length), (w - 0.08, 0.3, 0.5 * length), None)]
+  return [(BOX, IDENTITY, (0, body_y, 0), (w, h, length), None),
+          (BOX, IDENTITY, (0, body_y + h + 0.3, -0.15 * length), (w - 0.08, 0.3, 0.5 * length), None)]
 
 
 def lidar_scene(rng) -> Scene:
   """KITTI-like street: ground, buildings, poles, trees, cars and pedestrians; the ego car moves."""
   yaw = np.deg2rad(rng.uniform(-2, 2))
   forward = rng.uniform(0.3, 1.5)
-  builder = _Builder(rotation((0, 1, 0), yaw), (rng.uniform(-0.05, 0.05), 0, forward))
+  builder = Builder(rotation((0, 1, 0), yaw), (rng.uniform(-0.05, 0.05), 0, forward))
   g = -rng.uniform(1.55, 1.75)  # ground height below the sensor
-  builder.add([(PLANE, _I, _Z, (80, 0, 80), None)], _I, (0, g, 30))
+  builder.add([(PLANE, IDENTITY, ZERO, (80, 0, 80), None)], IDENTITY, (0, g, 30))
   road = rng.uniform(5, 8)  # half width of the road
   for side in (-1, 1):  # building facades along both sides, with gaps
     z = rng.uniform(-10, 0)
@@ -559,27 +559,27 @@ def lidar_scene(rng) -> Scene:
       if rng.random() < 0.8:
         x = side * (road + rng.uniform(2, 7))
         height = rng.uniform(3, 15)
-        builder.add([(BOX, _I, _Z, (4, height / 2, length / 2), None)],
+        builder.add([(BOX, IDENTITY, ZERO, (4, height / 2, length / 2), None)],
                     rotation((0, 1, 0), rng.uniform(-0.08, 0.08)),
                     (x + side * 4, g + height / 2, z + length / 2))
       z += length + rng.uniform(0, 6)
     for _ in range(rng.integers(1, 5)):  # poles and trees on the sidewalk
       x, z, h = side * (road + rng.uniform(0.3, 1.8)), rng.uniform(3, 45), rng.uniform(3, 7)
-      parts = [(CYLINDER, _I, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
+      parts = [(CYLINDER, IDENTITY, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
       if rng.random() < 0.5:
         crown = rng.uniform(1.0, 2.2)
         crown_size = (crown, crown * 0.8, crown)
-        parts.append((ELLIPSOID, _I, (0, h + crown * 0.6, 0), crown_size, _bump(rng, 0.12)))
-      builder.add(parts, _I, (x, g, z))
+        parts.append((ELLIPSOID, IDENTITY, (0, h + crown * 0.6, 0), crown_size, random_bump(rng, 0.12)))
+      builder.add(parts, IDENTITY, (x, g, z))
     for _ in range(rng.integers(0, 4)):  # parked cars
       x, z = side * (road - 1.1), rng.uniform(4, 45)
       heading = rng.uniform(-0.1, 0.1) + (side < 0) * math.pi
-      builder.add(_car_parts(rng), rotation((0, 1, 0), heading), (x, g, z))
+      builder.add(car_parts(rng), rotation((0, 1, 0), heading), (x, g, z))
     for _ in range(rng.integers(0, 3)):  # pedestrians walking on the sidewalk
       x, z = side * (road + rng.uniform(0.5, 2)), rng.uniform(3, 35)
-      parts = [(CYLINDER, _I, (0, 0.8, 0), (0.22, 0.8, 0), None),
-               (ELLIPSOID, _I, (0, 1.8, 0), (0.13,) * 3, None)]
-      builder.add(parts, _I, (x, g, z), rotation((0, 1, 0), rng.uniform(-0.1, 0.1)),
+      parts = [(CYLINDER, IDENTITY, (0, 0.8, 0), (0.22, 0.8, 0), None),
+               (ELLIPSOID, IDENTITY, (0, 1.8, 0), (0.13,) * 3, None)]
+      builder.add(parts, IDENTITY, (x, g, z), rotation((0, 1, 0), rng.uniform(-0.1, 0.1)),
                   (rng.uniform(-0.05, 0.05), 0, rng.uniform(-0.15, 0.15)))
   lanes = [x for x in (-3.5, 0.0, 3.5) if abs(x) + 1.2 < road - 1.1]
   for lane in lanes:  # traffic: cars ahead in the ego lane move the same way, others either way
@@ -590,7 +590,7 @@ def lidar_scene(rng) -> Scene:
         speed = rng.uniform(0, 1.5)
         turn = np.deg2rad(rng.uniform(-3, 3))
         direction = np.array([math.sin(heading + turn / 2), 0, math.cos(heading + turn / 2)])
-        builder.add(_car_parts(rng), rotation((0, 1, 0), heading + rng.uniform(-0.05, 0.05)),
+        builder.add(car_parts(rng), rotation((0, 1, 0), heading + rng.uniform(-0.05, 0.05)),
                     (lane + rng.uniform(-0.3, 0.3), g, z), rotation((0, 1, 0), turn), speed * direction)
       z += rng.uniform(8, 20)
   return builder.scene()

@@ -94,7 +94,7 @@ class Options:
 
 
 # z up (x forward, y left) <- the caster's frame (x, y up, z forward): a cyclic permutation.
-_TO_Z_UP = np.eye(3)[frames.permutation("y", "z")]
+_TO_Z_UP = frames.rotation("y", "z")
 
 
 def _grid(rng, beams: int, columns: int, offset_deg: float = 0.0) -> syn.Grid:
@@ -154,13 +154,13 @@ class _Street:
 
 
 def _person(rng):
-  return [(syn.CYLINDER, syn._I, (0, 0.8, 0), (rng.uniform(0.18, 0.26), 0.8, 0), None),
-          (syn.ELLIPSOID, syn._I, (0, 1.8, 0), (0.13,) * 3, None)]
+  return [(syn.CYLINDER, syn.IDENTITY, (0, 0.8, 0), (rng.uniform(0.18, 0.26), 0.8, 0), None),
+          (syn.ELLIPSOID, syn.IDENTITY, (0, 1.8, 0), (0.13,) * 3, None)]
 
 
 def _cyclist(rng):
-  return [(syn.BOX, syn._I, (0, 0.45, 0), (0.08, 0.35, 0.85), None),
-          (syn.CYLINDER, syn._I, (0, 1.25, 0), (0.2, 0.45, 0), None)]
+  return [(syn.BOX, syn.IDENTITY, (0, 0.45, 0), (0.08, 0.35, 0.85), None),
+          (syn.CYLINDER, syn.IDENTITY, (0, 1.25, 0), (0.2, 0.45, 0), None)]
 
 
 def build_scene(rng, opt: Options = Options()):
@@ -171,10 +171,10 @@ def build_scene(rng, opt: Options = Options()):
     else rng.uniform(1.0, 3.0))
   yaw = np.deg2rad(rng.uniform(-3, 3)) * (0.3 if speed > 2 else 1.0) * (speed > 0)
   tilt = syn.rotation((1, 0, 0), np.deg2rad(rng.normal(0, 0.15))) @ syn.rotation(
-    (0, 0, 1), np.deg2rad(rng.normal(0, 0.1))) if speed > 0 else syn._I
+    (0, 0, 1), np.deg2rad(rng.normal(0, 0.1))) if speed > 0 else syn.IDENTITY
   sensor_rot = syn.rotation((0, 1, 0), yaw) @ tilt
   sensor_pos = (math.sin(yaw / 2) * speed, 0.0, math.cos(yaw / 2) * speed)
-  builder = syn._Builder(sensor_rot, sensor_pos)
+  builder = syn.Builder(sensor_rot, sensor_pos)
   street = _Street(rng, rng.uniform(1.7, 2.1), opt.dense)
   cats, insts, grounds = [], [], []
 
@@ -187,7 +187,7 @@ def build_scene(rng, opt: Options = Options()):
 
   if opt.ground:
     for kind, rot, pos, size in street.planes():
-      add([(kind, syn._I, syn._Z, size, None)], rot, pos, is_ground=True)
+      add([(kind, syn.IDENTITY, syn.ZERO, size, None)], rot, pos, is_ground=True)
   road = street.road
   for side in (-1, 1):
     z = rng.uniform(-100, -80)
@@ -197,29 +197,29 @@ def build_scene(rng, opt: Options = Options()):
         x = side * (road + (rng.uniform(3, 9) if not opt.dense else rng.uniform(1.0, 2.0)))
         height = rng.uniform(3, 18) if not opt.dense else rng.uniform(12, 30)
         base = street.height(x, z + length / 2) - 2
-        add([(syn.BOX, syn._I, syn._Z, (4, height / 2 + 1, length / 2), None)],
+        add([(syn.BOX, syn.IDENTITY, syn.ZERO, (4, height / 2 + 1, length / 2), None)],
             syn.rotation((0, 1, 0), rng.uniform(-0.06, 0.06)),
             (x + side * 4, base + height / 2 + 1, z + length / 2))
       z += length + (rng.uniform(0, 8) if not opt.dense else rng.uniform(0, 1))
     for _ in range(rng.integers(3, 10)):  # poles and trees
       x, z, h = side * (road + rng.uniform(0.4, 2.0)), rng.uniform(-60, 60), rng.uniform(3, 8)
-      parts = [(syn.CYLINDER, syn._I, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
+      parts = [(syn.CYLINDER, syn.IDENTITY, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
       if rng.random() < 0.5:
         crown = rng.uniform(1.0, 2.5)
-        parts.append((syn.ELLIPSOID, syn._I, (0, h + crown * 0.6, 0), (crown, crown * 0.8, crown),
-                      syn._bump(rng, 0.12)))
-      add(parts, syn._I, (x, street.height(x, z) - 0.05, z))
+        parts.append((syn.ELLIPSOID, syn.IDENTITY, (0, h + crown * 0.6, 0), (crown, crown * 0.8, crown),
+                      syn.random_bump(rng, 0.12)))
+      add(parts, syn.IDENTITY, (x, street.height(x, z) - 0.05, z))
     for _ in range(rng.integers(1, 7) if not opt.dense else rng.integers(6, 12)):  # parked cars
       x, z = side * (road - 1.1), rng.uniform(-50, 50)
       heading = rng.uniform(-0.08, 0.08) + (side < 0) * math.pi
-      add(syn._car_parts(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
+      add(syn.car_parts(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
           REGULAR_VEHICLE)
     if not opt.movers:
       continue
     for _ in range(rng.integers(0, 4)):  # pedestrians on the sidewalk
       x, z = side * (road + rng.uniform(0.6, 2.5)), rng.uniform(-30, 30)
       walking = rng.random() < 0.7
-      add(_person(rng), syn._I, (x, street.height(x, z), z), PEDESTRIAN,
+      add(_person(rng), syn.IDENTITY, (x, street.height(x, z), z), PEDESTRIAN,
           syn.rotation((0, 1, 0), rng.uniform(-0.1, 0.1)) if walking else None,
           (rng.uniform(-0.05, 0.05), 0, rng.uniform(-0.18, 0.18)) if walking else None)
     if rng.random() < 0.5:  # a cyclist near the kerb, riding with the traffic of its side
@@ -227,7 +227,7 @@ def build_scene(rng, opt: Options = Options()):
       heading = 0.0 if side < 0 else math.pi
       v = rng.uniform(0.3, 0.8)
       add(_cyclist(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z), BICYCLIST,
-          syn._I, (0, 0, v * math.cos(heading)))
+          syn.IDENTITY, (0, 0, v * math.cos(heading)))
   if opt.movers:
     inner = 0.8 if not opt.dense else 1.3  # lane centre from the parking strip (dense: 0.6-1.1
     # m between a passing car and a parked one)
@@ -240,7 +240,7 @@ def build_scene(rng, opt: Options = Options()):
           turn = np.deg2rad(rng.uniform(-2, 2)) * (v > 0)
           d = np.array([math.sin(heading + turn / 2), 0, math.cos(heading + turn / 2)])
           x = lane + rng.uniform(-0.2, 0.2)
-          add(syn._car_parts(rng), syn.rotation((0, 1, 0), heading + rng.uniform(-0.04, 0.04)),
+          add(syn.car_parts(rng), syn.rotation((0, 1, 0), heading + rng.uniform(-0.04, 0.04)),
               (x, street.height(x, z), z), REGULAR_VEHICLE,
               syn.rotation((0, 1, 0), turn) if v else None, v * d if v else None)
         z += rng.uniform(10, 30)

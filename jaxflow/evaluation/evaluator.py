@@ -9,7 +9,7 @@ Metrics are computed per pair on its valid points, then averaged over pairs; pad
 function is compiled ahead of the timed calls) divided by the number of real pairs. Evaluation point
 sampling is seeded, so the same call gives the same numbers. Batches are streamed (memory does not
 grow with the number of pairs), with a progress bar in pairs/s on stderr. In a run over many
-processes (jaxflow.distributed) each process evaluates every P-th batch and the sums are reduced.
+processes (jaxflow.runtime.distributed) each process evaluates every P-th batch and the sums are reduced.
 `on_batch` callbacks (batch, predicted flow) see every batch: evaluate.py's --render_dir and
 --save_flows.
 """
@@ -24,7 +24,7 @@ import numpy as np
 
 from tqdm import tqdm
 
-from jaxflow import distributed
+from jaxflow.runtime import distributed
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import ConfigError
 from jaxflow.evaluation import av2_eval, submission

@@ -1,5 +1,6 @@
 """Flows and clouds as files other tools read: `save_flow` (--out of predict and jaxflow.nsfp),
-`FlowSaver` (the flow of every pair, `--save_flows DIR` of predict and evaluate.py), `write_ply`.
+`FlowSaver` (the flow of every pair, `--save_flows DIR` of predict and evaluate.py), `write_ply`,
+`save_motion` (predict --lidar --ego_out).
 
 One `.npy` per pair (float32 N x 3, row i the flow of pc1's point i as the model saw it), named by
 the pair: `flow_stem(pair.name)`, the pair's name with every run of characters other than letters,
@@ -42,6 +43,20 @@ def save_flow(out: pathlib.Path, flow_Nx3):
       np.savetxt(out, flow_Nx3, fmt="%.6f", delimiter="," if out.suffix.lower() == ".csv" else " ")
   except OSError as e:
     raise ConfigError(f"--out {out}: cannot write ({e.strerror or e})") from None
+
+
+def save_motion(out, motion) -> pathlib.Path:
+  """A rigid motion (rotation R, translation t: x -> R x + t) as a 4 x 4 matrix in a text file
+  (predict's --ego_out); an unwritable path is a ConfigError naming --ego_out."""
+  out = pathlib.Path(out)
+  matrix = np.eye(4)
+  matrix[:3, :3], matrix[:3, 3] = motion.rotation, motion.translation
+  try:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(out, matrix, fmt="%.9f", header="x2 = R x1 + t: [[R, t], [0, 0, 0, 1]]")
+  except OSError as e:
+    raise ConfigError(f"--ego_out {out}: cannot write ({e.strerror or e})") from None
+  return out
 
 
 def flow_stem(name: str) -> str:

@@ -73,9 +73,10 @@ def permutation(up: str, to: str = MODEL_UP) -> list[int]:
   return [(k + i - j) % 3 for i in range(3)]
 
 
-def rotation(up: str) -> np.ndarray:
-  """The 3 x 3 rotation R (det +1) with model = R @ sensor for a sensor frame with this up axis."""
-  return np.eye(3)[permutation(up)]
+def rotation(up: str, to: str = MODEL_UP) -> np.ndarray:
+  """The 3 x 3 rotation R (det +1) with target = R @ source, from a frame with up axis `up` to the
+  frame with up axis `to` (default the models')."""
+  return np.eye(3)[permutation(up, to)]
 
 
 def to_model(points_Nx3, up: str) -> np.ndarray:

@@ -67,7 +67,7 @@ class SweepInfo:
             f"{100 * self.ego.inlier_fraction:.0f}% of the points within "
             f"{100 * settings.ego.inlier:.0f} cm of PC2's surfaces); "
             f"{len(self.objects.moved)} of {self.objects.candidates} candidate objects move "
-            f"({moved} points); the other {self.kept[0] + self.far[0] + self.ground[0] - moved} "
+            f"({moved} points in them); the other {self.kept[0] + self.far[0] + self.ground[0] - moved} "
             "PC1 points get the ego-motion flow"
             + ("; the method's flow was a start" if self.used_network else "")
             + "".join(f"\nnote: {n}" for n in self.notes))
@@ -124,7 +124,7 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
   near1, near2 = ground.within_range(pc1, "z", max_range), ground.within_range(pc2, "z", max_range)
   keep1, keep2 = ~g1 & near1, ~g2 & near2
   if camera and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
-    return _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, order,
+    return _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, up,
                         surf1, max_range, settings, notes + [
                           f"{names[0]} covers {360 * view:.0f} of 360 degrees of azimuth: a "
                           "camera's view, not a sweep; the flow of its non-ground points within "
@@ -158,7 +158,7 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
     flow, found = fit.motion.flow(pc1), objects.Found(0, 0, [])
   if not np.isfinite(flow).all():  # never reached by construction; never returned either
     raise FloatingPointError("raw_sweep_flow: a non-finite flow")
-  motion = fit.motion.in_frame(np.eye(3)[order].T)  # back in the input's frame
+  motion = fit.motion.in_frame(frames.rotation("z", up))  # back in the input's frame
   info = _info(surf1, g1, g2, near1, near2, motion, fit, found, max_range,
                start_flow is not None, notes, settings)
   return np.ascontiguousarray(flow[:, back], np.float32), info
@@ -183,7 +183,7 @@ def azimuth_coverage(points_Nx3) -> float:
   return float((counts >= max(1, 1e-3 * len(points_Nx3))).mean())
 
 
-def _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, order, surf1,
+def _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, up, surf1,
                  max_range, settings, notes):
   """A camera-frame pair (e.g. KITTI's stereo frames): flow_fn on the kept points, the removed
   ones the rigid motion of the static part of that flow (jaxflow.geometry.rigid)."""
@@ -192,7 +192,7 @@ def _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, 
   motion = rigid.fit_static_motion(pc1[keep1], kept_flow)
   flow = motion.flow(pc1)
   flow[keep1] = kept_flow
-  z_up = motion.in_frame(np.eye(3)[order])
+  z_up = motion.in_frame(frames.rotation(up, "z"))
   fit = ego.EgoMotion(z_up, float(motion.inliers.mean()), float("nan"), "flow_fn", {})
   info = _info(surf1, g1, g2, near1, near2, motion, fit, objects.Found(0, 0, []), max_range, True,
                notes, settings)

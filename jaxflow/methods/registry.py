@@ -19,7 +19,7 @@ import jax
 import ml_collections
 import numpy as np
 
-from jaxflow import configfile
+from jaxflow.runtime import configfile
 from jaxflow.errors import ConfigError
 from jaxflow.methods import network_alone, nsfp, optimise, raw_sweeps
 from jaxflow.methods.interface import Method

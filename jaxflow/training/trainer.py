@@ -12,7 +12,7 @@ gradient is taken only w.r.t. the trainable parameters (the others are closed ov
 is an `optax.multi_transform` whose frozen group is `set_to_zero` (no optimiser state), and the
 model runs with `freeze_backbone=True`.
 
-Many processes (jaxflow.distributed): one mesh over every process's devices, each process loads its
+Many processes (jaxflow.runtime.distributed): one mesh over every process's devices, each process loads its
 rows of every global batch, all of them save checkpoints together; process 0 writes the files.
 """
 
@@ -31,7 +31,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from tqdm import tqdm
 
-from jaxflow import distributed
+from jaxflow.runtime import distributed
 from jaxflow.data import BatchLoader, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
 from jaxflow.evaluation import evaluator, reporting

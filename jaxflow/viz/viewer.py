@@ -96,7 +96,8 @@ def figure(pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", ego_flow=None, ground1=Non
       label = f"pc1 by speed {relative}"
     elif name == "dynamic":
       marker = dict(size=2.4, color=COLOURS["dynamic"], symbol="circle-open")  # colours show
-      label = f"dynamic (speed >= {DYNAMIC:g} m): {len(points)}"
+      where = f"within {max_range:g} m, " if max_range else ""
+      label = f"dynamic (speed >= {DYNAMIC:g} m): {len(points)} of the drawn points ({where}no ground)"
     traces.append(go.Scatter3d(x=points[:, 0], y=points[:, 1], z=points[:, 2], mode="markers",
                                marker=marker, name=label,
                                visible=True if name in ("speed", "dynamic", "removed ground")

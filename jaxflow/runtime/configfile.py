@@ -22,7 +22,7 @@ import ml_collections
 
 from jaxflow.errors import ConfigError
 
-PACKAGE_CONFIGS = pathlib.Path(__file__).absolute().parent / "configs"
+PACKAGE_CONFIGS = pathlib.Path(__file__).absolute().parent.parent / "configs"
 
 
 def resolve(spec: str) -> str:
