@@ -21,6 +21,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.max_range = 35.0  # m: the points within this horizontal distance are kept (0: all)
   config.min_azimuth = 0.5  # share of 360 deg a sweep covers at least (a camera's view: less)
   config.frame_rate_hz = 10.0  # sweeps a second: the per-second limits are divided by it
+  config.static_threshold = 0.1  # m: within this of a rigid fit of a method's flow: static
 
   config.ground = ml_collections.ConfigDict()
   config.ground.margin = 0.25  # m above the ground still ground (KITTI: y < -1.4, road -1.65)
@@ -76,6 +77,9 @@ def get_config() -> ml_collections.ConfigDict:
   config.objects.many_unexplained = 100  # unexplained points that make any object a candidate
   config.objects.search_per_s = 35.0  # m/s: an object's translation search, +- this
   config.objects.search_step = 0.25  # m: the translation search's fine step (twice that first)
+  config.objects.search_coarse_step = 0.5  # m: its coarse step (the fine one searches +- this)
+  config.objects.search_points = 150  # points at most a motion is searched on (half judge it)
+  config.objects.search_slack = 0.5  # m: a refined motion may reach this beyond the search
   # A point's cost is its 3-D distance to pc2 truncated at `spacings` of the object's point
   # spacings, within truncate .. max_truncate, in units of that truncation (0 .. 1).
   config.objects.truncate = 0.3  # m: the least truncation of a point's cost (the search's)
@@ -88,6 +92,9 @@ def get_config() -> ml_collections.ConfigDict:
   config.objects.max_yaw_deg_per_s = 100.0  # deg/s: an object turning faster is refused
   config.objects.low_ground = 0.05  # m: "ground" this high in a moving object's cells moves too
   config.objects.rounds = 15  # iterations of an object's bird's-eye ICP
+  config.objects.icp_scales = (0.3, 0.15, 0.08, 0.05)  # m: its robust scales, 4 rounds each
+  config.objects.icp_gate = 3.0  # scales (plus icp_gate_margin): its rows farther are left out
+  config.objects.icp_gate_margin = 0.2  # m
   config.objects.azimuth_bins = 1200  # columns of the visibility image (0.3 deg)
   config.objects.elevation_bins = 360  # rows of the visibility image (0.5 deg)
   config.objects.hidden = 0.5  # m behind pc2's return in its direction: hidden
@@ -97,6 +104,11 @@ def get_config() -> ml_collections.ConfigDict:
 
 
 @functools.lru_cache(maxsize=None)
+def block(name: str, given=None):
+  """The `name` block (ground, ego, objects): `given`, else the defaults' (a call given none)."""
+  return getattr(defaults(), name) if given is None else given
+
+
 def defaults() -> ml_collections.FrozenConfigDict:
   """get_config(), frozen and built once: the settings of a call given none."""
   return ml_collections.FrozenConfigDict(get_config())

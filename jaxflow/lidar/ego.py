@@ -44,11 +44,6 @@ class EgoMotion:
   note: str | None = None  # set when the fit is implausible
 
 
-def _settings(settings):
-  """The ego block given, or the default one."""
-  return sweep_config.defaults().ego if settings is None else settings
-
-
 def _rate(frame_rate_hz):
   """The frame rate given, or the config's (10 Hz)."""
   return sweep_config.defaults().frame_rate_hz if frame_rate_hz is None else frame_rate_hz
@@ -78,7 +73,7 @@ class Registration:
   def __init__(self, pc1_Nx3, pc2_Mx3, _targets=None, settings=None):
     self.pc1 = np.ascontiguousarray(pc1_Nx3, np.float64)
     self.pc2 = np.ascontiguousarray(pc2_Mx3, np.float64)
-    self.settings = _settings(settings)
+    self.settings = sweep_config.block("ego", settings)
     self._sources, self._targets = {}, {} if _targets is None else _targets
 
   def clouds(self, voxel: float, count: int):
@@ -138,7 +133,7 @@ class Residual:
   def __init__(self, source_Kx3, target_Lx3, normals_Lx3, settings=None):
     self.source = source_Kx3
     self.target = registration.PlaneTarget(target_Lx3, normals_Lx3)
-    settings = _settings(settings)
+    settings = sweep_config.block("ego", settings)
     self.truncate, self.inlier = settings.truncate, settings.inlier
 
   def per_point(self, motion: rigid.Motion, points_Kx3=None) -> np.ndarray:
@@ -158,7 +153,7 @@ class Target:
   direction (or none: a blob). jaxflow.lidar.objects's residuals and the coarse `search`."""
 
   def __init__(self, pc2_Mx3, ground2_M=None, settings=None):
-    settings = _settings(settings)
+    settings = sweep_config.block("ego", settings)
     k, self.max_match = settings.neighbours, settings.max_match
     above = np.asarray(pc2_Mx3, np.float64)
     if ground2_M is not None:
@@ -206,7 +201,7 @@ def search(target: Target, above_Kx3, scale: float = 0.5, settings=None,
   """The best yaw x forward x lateral motion of a coarse grid (the settings' search_*_per_s a
   frame): the least mean bird's-eye distance of the moved points to pc2's, each at most `scale`
   (one k-d tree query for the whole grid)."""
-  settings, rate = _settings(settings), _rate(frame_rate_hz)
+  settings, rate = sweep_config.block("ego", settings), _rate(frame_rate_hz)
   yaw, x, y = np.meshgrid(np.radians(search_grid(settings.search_yaw_deg_per_s, rate)),
                           search_grid(settings.search_x_per_s, rate),
                           search_grid(settings.search_y_per_s, rate), indexing="ij")
@@ -226,7 +221,7 @@ def estimate(pc1_Nx3, pc2_Mx3, ground1_N=None, ground2_M=None, starts=None, seed
   """The ego-motion of two z-up sweeps (module docstring). `starts`: extra named start motions
   (e.g. {"network": Motion}); `ground1_N`, `ground2_M` (optional): ground points, left out of the
   coarse search seen from above (GICP uses every point)."""
-  settings = _settings(settings)
+  settings = sweep_config.block("ego", settings)
   pc1 = np.asarray(pc1_Nx3, np.float64)
   pc2 = np.asarray(pc2_Mx3, np.float64)
   identity = rigid.Motion.of(np.eye(3), np.zeros(3))

@@ -23,11 +23,6 @@ from jaxflow.errors import DataError
 from jaxflow.geometry import frames
 
 
-def _settings(settings):
-  """The ground block given, or the default one."""
-  return sweep_config.defaults().ground if settings is None else settings
-
-
 def horizontal_range(points_Nx3, up: str = "z") -> np.ndarray:
   """Distance of each point from the sensor in the plane orthogonal to `up` (N)."""
   other = [i for i in range(3) if i != frames.up_index(up)]
@@ -94,7 +89,7 @@ def fit_ground(points_Nx3, up: str = "z",
   `settings`. Seeded: the same sweep gives the same plane. Raises DataError(name) when no plane
   is found (fewer than 3 candidates, or none flat enough).
   """
-  settings = _settings(settings)
+  settings = sweep_config.block("ground", settings)
   inlier, max_tilt_deg = settings.inlier, settings.max_tilt_deg
   k = frames.up_index(up)
   points = np.asarray(points_Nx3, np.float64)
@@ -211,7 +206,7 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
   and crowned roads are followed. A cell too far from any ground keeps the plane of the nearest
   window that has one. `extent`, `cell`: default the settings' surface_extent, surface_cell.
   """
-  settings = _settings(settings)
+  settings = sweep_config.block("ground", settings)
   extent = settings.surface_extent if extent is None else extent
   cell = settings.surface_cell if cell is None else cell
   windows, max_tilt_deg = tuple(settings.surface_windows), settings.max_tilt_deg
@@ -275,7 +270,7 @@ def find_ground(points_Nx3, up: str = "z", name: str = "points",
   """(Surface, ground N bool) of a sweep: fit_ground's plane within `plane_range` (20 m), then
   fit_surface from it (what raw_sweep_flow does to each sweep). Raises fit_ground's DataError
   when the sweep has no ground plane."""
-  settings = _settings(settings)
+  settings = sweep_config.block("ground", settings)
   plane = fit_ground(points_Nx3, up, settings.plane_range, name=name, settings=settings)
   surface = fit_surface(points_Nx3, up, plane, name, settings=settings)
   return surface, surface.ground(points_Nx3)
@@ -288,7 +283,7 @@ def check_ground(surface: Surface, ground_N, name: str, up: str, points_Nx3=None
   wrong up axis (a wall taken for the ground) `check_up_axis` on `points_Nx3` raises the error
   that names the right axis; otherwise the problem is returned as a note (None: no problem): a
   frame whose origin lies below the road, or a sweep of an empty car park, is data, not an error."""
-  settings = _settings(settings)
+  settings = sweep_config.block("ground", settings)
   lowest, highest = settings.min_sensor_height, settings.max_sensor_height
   height, fraction = surface.sensor_height, float(np.mean(ground_N))
   problem = None
@@ -312,7 +307,7 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
   ground would (within `max_sensor_height` of the origin): the ground is a sweep's
   largest plane, a wall rarely is. A perpendicular plane farther away (a facade beside a sweep
   whose ground was removed upstream) gives a note (returned) instead: `up` may well be right."""
-  settings = _settings(settings)
+  settings = sweep_config.block("ground", settings)
   k = frames.up_index(up)
   p = np.asarray(points_Nx3, np.float64)
   p = p[np.isfinite(p).all(1)]

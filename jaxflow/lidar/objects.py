@@ -25,11 +25,6 @@ from jaxflow.geometry import neighbours, registration, rigid, visibility as view
 from jaxflow.lidar import ego
 
 
-def _settings(settings):
-  """The objects block given, or the default one."""
-  return sweep_config.defaults().objects if settings is None else settings
-
-
 @dataclasses.dataclass(frozen=True)
 class Found:
   """What object_flow did: objects considered, moved, and each moved one's world motion."""
@@ -47,15 +42,18 @@ def _per_point(target: ego.Target, moved_Kx3) -> np.ndarray:
   return out
 
 
-def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion, rounds: int) -> rigid.Motion:
+def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion, settings) -> rigid.Motion:
   """Yaw and horizontal translation of `start` refined seen from above (robust, the scale
-  shrinking every 4 rounds), `rounds` rounds at most, turning about the object's centre."""
+  shrinking every 4 rounds: `icp_scales`), `rounds` rounds at most, turning about the object's
+  centre."""
 
   def rows_of(moved_Kx3, scale):
     rows = target.bev_rows(moved_Kx3)
-    return dataclasses.replace(rows, gate=np.abs(rows.residual) < 3 * scale + 0.2)
+    gate = settings.icp_gate * scale + settings.icp_gate_margin
+    return dataclasses.replace(rows, gate=np.abs(rows.residual) < gate)
 
-  scales = [(0.3, 0.15, 0.08, 0.05)[min(i // 4, 3)] for i in range(rounds)]
+  last = len(settings.icp_scales) - 1
+  scales = [settings.icp_scales[min(i // 4, last)] for i in range(settings.rounds)]
   return registration.robust_fit(points_Kx3, start, rows_of, scales, dof="yaw_xy",
                                  about_centroid=True, damping=1e-3, converged=1e-5)
 
@@ -101,7 +99,8 @@ def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
   """The best horizontal translation within +-`search` m (3-D cost; coarse, then fine)."""
   best = np.zeros(3)
   truncate = settings.truncate
-  for half, step in ((search, 0.5), (0.5, settings.search_step / 2)):
+  coarse = settings.search_coarse_step
+  for half, step in ((search, coarse), (coarse, settings.search_step / 2)):
     steps = np.arange(-half, half + 1e-9, step)
     dx, dy = np.meshgrid(steps, steps, indexing="ij")
     shifts = best + np.c_[dx.ravel(), dy.ravel(), np.zeros(dx.size)]
@@ -156,7 +155,7 @@ def groups(points_Nx3, height_N, cell: float | None = None, bridge: bool = True,
   """Object label of each point (-1: none) by 8-connected occupied cells (default the settings'
   cell) seen from above, from the points between 0 and `object_top` above the ground (gaps of a
   cell bridged unless `bridge` is False); higher points join the object below."""
-  settings = _settings(settings)
+  settings = sweep_config.block("objects", settings)
   low = (height_N > 0) & (height_N < settings.object_top)
   return cell_components(points_Nx3, low, settings.cell if cell is None else cell, bridge)
 
@@ -170,7 +169,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   to start each object from (e.g. the network's). `settings`: the objects block; `ego_settings`:
   the ego block (pc2's bird's-eye ego.Target); `frame_rate_hz` divides the per-second limits
   (default: the config's)."""
-  s = _settings(settings)
+  s = sweep_config.block("objects", settings)
   rate = sweep_config.defaults().frame_rate_hz if frame_rate_hz is None else frame_rate_hz
   search, max_yaw_deg = s.search_per_s / rate, s.max_yaw_deg_per_s / rate
   min_seen = s.min_seen
@@ -207,7 +206,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     # Motions are searched on half the points and judged on the other half: the best of many
     # motions fits its own points better than standing still by chance alone.
     shuffled = pts[rng.permutation(len(pts))]
-    sample, judge = shuffled[0::2][:150], shuffled[1::2]
+    sample, judge = shuffled[0::2][:s.search_points], shuffled[1::2]
     still = rigid.Motion(np.eye(3), np.zeros(3))
     starts = {"search": _search(tree, sample, search, s)}
     if start_flow_Nx3 is not None and np.isfinite(start_flow_Nx3[idx]).all():
@@ -218,17 +217,17 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     still_costs = _costs(tree, judge, visibility, ego_motion, truncate)
     best_name, best, best_costs = "still", still, still_costs
     for name, start in starts.items():
-      for m in (start, _bev_icp(target, sample, start, s.rounds)):
+      for m in (start, _bev_icp(target, sample, start, s)):
         yaw = abs(np.degrees(np.arctan2(m.rotation[1, 0], m.rotation[0, 0])))
         shift = np.linalg.norm(m.apply(judge.mean(0)[None])[0] - judge.mean(0))
-        if yaw > max_yaw_deg or shift > search + 0.5:  # no car turns or jumps like that
+        if yaw > max_yaw_deg or shift > search + s.search_slack:  # no car turns or jumps so
           continue
         c = _costs(tree, m.apply(judge), visibility, ego_motion, truncate)
         if _mean(c, min_seen) < _mean(best_costs, min_seen):
           best_name, best, best_costs = name, m, c
     if best_name == "still" or not _better(still_costs, best_costs, s):
       continue
-    refit = _bev_icp(target, pts, best, s.rounds)  # chosen on halves: now fitted on all points
+    refit = _bev_icp(target, pts, best, s)  # chosen on halves: now fitted on all points
     if _mean(_costs(tree, refit.apply(pts), visibility, ego_motion, truncate), min_seen) <= _mean(
         _costs(tree, best.apply(pts), visibility, ego_motion, truncate), min_seen):
       best = refit

@@ -139,7 +139,8 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
                                    np.asarray(pc2_Mx3, np.float32)[keep2]), np.float64)
     start_flow = np.full_like(pc1, np.nan)
     start_flow[keep1] = kept_flow[:, order]
-    starts["network"] = rigid.fit_static_motion(pc1[keep1], start_flow[keep1])
+    starts["network"] = rigid.fit_static_motion(pc1[keep1], start_flow[keep1],
+                                                settings.static_threshold)
   rate = settings.frame_rate_hz
   fit = ego.estimate(pc1, pc2, g1, g2, starts, seed, settings=settings.ego, frame_rate_hz=rate)
   if fit.note:
@@ -189,7 +190,7 @@ def _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, 
   ones the rigid motion of the static part of that flow (jaxflow.geometry.rigid)."""
   pc1 = np.asarray(pc1_Nx3, np.float32)
   kept_flow = np.asarray(flow_fn(pc1[keep1], np.asarray(pc2_Mx3, np.float32)[keep2]), np.float32)
-  motion = rigid.fit_static_motion(pc1[keep1], kept_flow)
+  motion = rigid.fit_static_motion(pc1[keep1], kept_flow, settings.static_threshold)
   flow = motion.flow(pc1)
   flow[keep1] = kept_flow
   z_up = motion.in_frame(frames.rotation(up, "z"))

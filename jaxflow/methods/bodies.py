@@ -46,6 +46,7 @@ class Settings:
   sample: int = 8192  # points at most that the hypotheses are searched on (seeded sample)
   icp_rounds: int = 20
   icp_points: int = 4000  # points at most an ICP fits (seeded sample)
+  icp_scales: tuple = (0.2, 0.1, 0.05, 0.03)  # metres: the ICP's robust scales, coarse to fine
   point_weight: float = 0.1  # of the point-to-point rows beside the point-to-plane ones
   max_shift: float = 0.5  # metres: a refinement moving its points more than this is refused
   neighbours: int = 32  # a point's cost is the mean over this many neighbours in pc1
@@ -210,9 +211,8 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   bins = round(360 / settings.view_bin_deg), round(180 / settings.view_bin_deg)
   view = View(pc2, "y", *bins, settings.hidden)  # the model frame: y up
   normals1 = neighbours.local_spread(pc1, 10, tree1)[1][:, :, 0]
-  coarse = (0.2, 0.1, 0.05, 0.03)
   motions = [_icp(target, pc1[sample[_subset(inl, settings.icp_points, rng)]], m,
-                  settings.icp_rounds, coarse, settings) for m, inl in found]
+                  settings.icp_rounds, settings.icp_scales, settings) for m, inl in found]
   motions += [m for m, _ in found]  # the unrefined motions stay candidates
   # A body is contiguous: a point may take only a motion that a neighbour takes (at first, one
   # whose hypothesis the neighbour supported in the starting flow).
