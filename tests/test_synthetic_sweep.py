@@ -78,6 +78,13 @@ def test_registered_as_a_dataset_with_three_way_labels():
   assert pair.has_labels and pair.mask.sum() > 0 and not pair.mask.all()
   with pytest.raises(DataError, match="split"):
     open_dataset("synthetic_sweep:2", "train")
+  # A form by name: the pairs of sweep_pair with its options; a bad one is named.
+  city = open_dataset("synthetic_sweep:1,form=city", "test")
+  truth = ss.sweep_pair("test", 0, ss.FORMS["city"])
+  np.testing.assert_array_equal(city[0].pc1, truth.pc1)
+  assert city.name == "synthetic_sweep:1,form=city" and "city" in city.describe()
+  with pytest.raises(DataError, match="form=one of generated, city, noground"):
+    open_dataset("synthetic_sweep:1,form=town", "test")
 
 
 def test_the_dataset_says_it_is_z_up_and_carries_the_av2_labels():

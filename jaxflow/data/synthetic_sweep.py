@@ -2,6 +2,7 @@
 
     sweep = sweep_pair("val", 3)          # a SweepPair: pc1, pc2, flow, ego flow, labels, ground
     ds = open_dataset("synthetic_sweep:20", "test")   # as jaxflow Pairs (evaluate.py)
+    ds = open_dataset("synthetic_sweep:8,form=city", "val")   # a dense city (FORMS)
 
 Unlike `synthetic_lidar` (the KITTI loader's cut: no ground, 35 m, the camera's field of view, y up)
 these pairs are what a raw sweep is: z up (x forward, y left), the full azimuth, 32, 64 or 128
@@ -293,30 +294,46 @@ def sweep_pair(split: str, index: int, options: Options = Options()) -> SweepPai
     name=f"synthetic_sweep/{split}/{index}")
 
 
-class SyntheticSweep(Dataset):
-  """`count` raw sweep pairs of one split, generated on demand."""
+# The forms a spec may ask for ("synthetic_sweep:COUNT,form=NAME"): what the benchmarks score.
+FORMS = {"generated": Options(),
+         "city": Options(dense=True, origin_height=0.33, stacked=True),  # Argoverse 2-like
+         "noground": Options(ground=False)}  # the ground removed upstream
 
-  def __init__(self, split: str, count: int):
-    self.split, self.count, self.name = split, count, f"synthetic_sweep:{count}"
+
+class SyntheticSweep(Dataset):
+  """`count` raw sweep pairs of one split and form, generated on demand."""
+
+  def __init__(self, split: str, count: int, form: str = "generated"):
+    self.split, self.count, self.form = split, count, form
+    self.name = f"synthetic_sweep:{count}" + (f",form={form}" if form != "generated" else "")
 
   def __len__(self):
     return self.count
 
   def load(self, i):
-    return sweep_pair(self.split, i).to_pair()
+    return sweep_pair(self.split, i, FORMS[self.form]).to_pair()
 
   def describe(self):
-    return f"{self.name} split={self.split}: {self.count} raw 360-degree sweep pairs, z up"
+    return (f"{self.name} split={self.split}: {self.count} raw 360-degree sweep pairs "
+            f"({self.form}), z up")
 
 
-def open_sweeps(count: str, split: str | None) -> SyntheticSweep:
-  spec = f"synthetic_sweep:{count}"
+def open_sweeps(arg: str, split: str | None) -> SyntheticSweep:
+  """"COUNT[,form=generated|city|noground]" (module docstring; FORMS)."""
+  spec = f"synthetic_sweep:{arg}"
+  count, *options = arg.split(",")
   split = split or "val"
   if split not in SPLITS:
     raise DataError(spec, f"unknown split {split!r}; synthetic_sweep's splits are {SPLITS}")
   if count and (not count.isdigit() or int(count) < 1):
     raise DataError(spec, f"COUNT must be a positive integer, got {count!r}")
-  return SyntheticSweep(split, int(count) if count else DEFAULT_COUNT[split])
+  form = "generated"
+  for option in options:
+    key, eq, value = option.partition("=")
+    if key != "form" or not eq or value not in FORMS:
+      raise DataError(spec, f"bad option {option!r}; expected form=one of {', '.join(FORMS)}")
+    form = value
+  return SyntheticSweep(split, int(count) if count else DEFAULT_COUNT[split], form)
 
 
 register("synthetic_sweep", open_sweeps)
