@@ -41,6 +41,11 @@ def get_config() -> ml_collections.ConfigDict:
   # Not 0: vehicle (ego) frames, Argoverse 2's and Waymo's, put the origin near the ground.
   config.ground.min_sensor_height = -1.0  # m: a ground higher above the origin: a note
   config.ground.max_ground_fraction = 0.85  # a "ground" holding more of a sweep: a note
+  config.ground.up_check_points = 4000  # the up-axis check's sample of a sweep (seeded)
+  config.ground.up_check_planes = 300  # its random planes (triples of the sample)
+  config.ground.up_check_share = 1 / 3  # share of the sample the largest plane must hold
+  config.ground.up_check_over_ground = 1.2  # ... and this many times the share taken as ground
+  config.ground.up_check_tilt_deg = 45.0  # deg: a plane tilted more from --up stands upright
 
   config.ego = ml_collections.ConfigDict()
   # Coarse to fine: (voxel m, neighbours of a covariance, largest match m) of each GICP pass.

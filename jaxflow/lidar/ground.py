@@ -303,9 +303,9 @@ def check_ground(surface: Surface, ground_N, name: str, up: str, points_Nx3=None
 def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
                   seed: int = 0, settings=None) -> str | None:
   """Refuses an up axis perpendicular to the sweep's largest plane when that plane holds a third
-  of the points and more than what was taken as ground (`ground_fraction`), and lies where a
-  ground would (within `max_sensor_height` of the origin): the ground is a sweep's
-  largest plane, a wall rarely is. A perpendicular plane farther away (a facade beside a sweep
+  of the points (`up_check_share`) and more than what was taken as ground (`ground_fraction`,
+  times `up_check_over_ground`), and lies where a ground would (within `max_sensor_height` of the
+  origin): the ground is a sweep's largest plane, a wall rarely is. A perpendicular plane farther away (a facade beside a sweep
   whose ground was removed upstream) gives a note (returned) instead: `up` may well be right."""
   settings = sweep_config.block("ground", settings)
   k = frames.up_index(up)
@@ -314,8 +314,8 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
   if len(p) < 3:
     return None
   rng = np.random.default_rng(seed)
-  sample = p[rng.choice(len(p), min(len(p), 4000), replace=False)]
-  triples = sample[rng.integers(0, len(sample), (300, 3))]
+  sample = p[rng.choice(len(p), min(len(p), settings.up_check_points), replace=False)]
+  triples = sample[rng.integers(0, len(sample), (settings.up_check_planes, 3))]
   normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
   norms = np.linalg.norm(normals, axis=1)
   ok = norms > 1e-6
@@ -326,8 +326,9 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
             < settings.inlier).sum(1)
   best = int(np.argmax(counts))
   share = counts[best] / len(sample)
-  across = abs(normals[best, k]) < np.cos(np.radians(45))
-  if not (share > 1 / 3 and share > 1.2 * ground_fraction and across):
+  across = abs(normals[best, k]) < np.cos(np.radians(settings.up_check_tilt_deg))
+  if not (share > settings.up_check_share
+          and share > settings.up_check_over_ground * ground_fraction and across):
     return None
   along = "xyz"[int(np.argmax(np.abs(normals[best])))]
   distance = abs(float(normals[best] @ triples[best, 0]))  # of the origin from the plane
