@@ -45,10 +45,9 @@ from jaxflow.lidar import ego, ground, sweep
 REAL = pathlib.Path(__file__).resolve().parents[2] / "shared/data/real_sweeps"
 MOTION = rigid.Motion(Rotation.from_euler("z", 2.0, degrees=True).as_matrix(),
                       np.array([1.0, 0.1, 0.02]))
-FORMS = {"generated": ss.Options(),
-         "city (dense, AV2 ego frame, stacked)": ss.Options(dense=True, origin_height=0.33,
-                                                            stacked=True),
-         "ground removed": ss.Options(ground=False)}
+FORMS = {"generated": ss.FORMS["generated"],
+         "city (dense, AV2 ego frame, stacked)": ss.FORMS["city"],
+         "ground removed": ss.FORMS["noground"]}
 
 
 def samples(pairs: int, split: str):

@@ -112,11 +112,13 @@ class Predictor:
     None: the model's own."""
     kwargs = dict(num_iters=num_iters, max_points=max_points, full=full, corr_chunk=corr_chunk,
                   seed=seed)
-    if lidar or self.method == "lidar":  # the lidar method alone: no network for a camera's view
-      return sweep_prediction(None if self.method == "lidar" else lambda: self, pc1_Nx3, pc2_Mx3,
-                              names, up, max_range, ground_limits, use_network,
-                              sweep_settings if sweep_settings is not None or self.method != "lidar"
-                              else self.method_settings, **kwargs)
+    if self.method == "lidar":  # the lidar method alone: no network, not even for a camera's view
+      settings = self.method_settings if sweep_settings is None else sweep_settings
+      return sweep_prediction(None, pc1_Nx3, pc2_Mx3, names, up, max_range, ground_limits,
+                              use_network, settings, **kwargs)
+    if lidar:
+      return sweep_prediction(lambda: self, pc1_Nx3, pc2_Mx3, names, up, max_range, ground_limits,
+                              use_network, sweep_settings, **kwargs)
     pc1 = as_cloud(pc1_Nx3, names[0], self.min_points)
     up, note = frames.resolve_up(pc1, up, frames.MODEL_UP, names[0], ground_limits)
     inner = self._predict(frames.to_model(pc1, up),
@@ -182,8 +184,8 @@ def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: 
   Predictor, called only when the method runs (a camera's view, or `use_network`): a 360-degree
   sweep loads no network (None: no method runs, the `lidar` method alone). `sweep_settings`:
   raw_sweep_flow's `settings`; `kwargs`: Predictor.predict's sampling arguments."""
-  up, up_note = frames.resolve_up(as_cloud(pc1_Nx3, names[0], 3), up, "z", names[0],
-                                  ground_limits)
+  clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
+  up, up_note = frames.resolve_up(clouds[0], up, "z", names[0], ground_limits)
   sweep_settings = sweep.settings_of(sweep_settings)
   max_range = sweep_settings.max_range if max_range is None else max_range
   kwargs = {**dict(num_iters=DEFAULT_ITERS, max_points=DEFAULT_MAX_POINTS, full=False,
@@ -198,7 +200,6 @@ def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: 
       as_cloud(kept2, kept_names[1], predictor.min_points), **kwargs))
     return inner[-1].flow
 
-  clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
   flow_fn = None if get_predictor is None else frames.in_model_frame(estimate, up)
   flow, info = sweep.raw_sweep_flow(flow_fn, *clouds, up=up,
                                     max_range=max_range, names=names,

@@ -69,7 +69,7 @@ def test_pc2_in_another_frame_is_warned_about(slow_sweep):
 def test_traffic_beside_the_sensor_does_not_pull_the_ego_motion():
   """A dense city from Argoverse 2's ego frame where GICP alone lands 0.45 m off (pulled by the
   moving vehicles beside the sensor; the static residual knows better): refitted on its inliers."""
-  s = ss.sweep_pair("test", 5, ss.Options(dense=True, origin_height=0.33, stacked=True))
+  s = ss.sweep_pair("test", 5, ss.FORMS["city"])
   untrimmed = ego.Registration(s.pc1, s.pc2).gicp(rigid.Motion.of(np.eye(3), np.zeros(3)))
   assert errors(untrimmed, s)[1] > 0.3  # the failure this guards against
   angle, shift = errors(ego.estimate(s.pc1, s.pc2).motion, s)

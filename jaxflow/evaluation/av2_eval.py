@@ -214,6 +214,12 @@ class Official:
     return {"av2": av2, "bucketed": {**bucketed_results(self.buckets), "pairs": self.pairs}}
 
 
+def challenge_points(dataset) -> bool:
+  """Whether a dataset is scored on the Argoverse 2 challenge's points: opensf's region=challenge
+  and region=sweep, and any reader without that option (synthetic_sweep's mask is those points)."""
+  return getattr(dataset, "options", {}).get("region", "challenge") in ("challenge", "sweep")
+
+
 def format_results(results: dict, dataset=None) -> str:
   """The av2 breakdown (count-weighted over the split) and the bucketed EPE of `results`
   (Official.results()) as two tables; a last line says when `dataset` is not read on the
@@ -235,11 +241,9 @@ def format_results(results: dict, dataset=None) -> str:
   brows.append(("mean", f"{b['static_epe']:.4f}", f"{b['dynamic_norm_epe']:.4f}", ""))
   bhead = ("bucketed 2024 (35 m box)", "static EPE", "dynamic normalised EPE", "points")
   text = tables.markdown_table(head, rows) + "\n" + tables.markdown_table(bhead, brows)
-  on_challenge = (r.get("challenge_points", True) if dataset is None
-                  else getattr(dataset, "options", {}).get("region", "challenge")
-                  in ("challenge", "sweep"))
+  on_challenge = r.get("challenge_points", True) if dataset is None else challenge_points(dataset)
   if not on_challenge:
     text += ("\nnote: on the reader's points (ground removed, the max_range disc), not the "
-             "challenge's: open the dataset with region=challenge (region=sweep: whole raw sweeps in, "
-             "scored on the challenge's points) for those")
+             "challenge's: open the dataset with region=challenge (region=sweep: whole raw sweeps "
+             "in, scored on the challenge's points) for those")
   return text

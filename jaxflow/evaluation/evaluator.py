@@ -251,8 +251,7 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
   results.update(dataset=dataset, split=split, checkpoint=checkpoint and str(checkpoint), step=step,
                  num_points=config.eval.num_points, num_iters=config.eval.num_iters)
   if "av2" in results:  # on the challenge's points, or the reader's (a note in the table)
-    results["av2"]["challenge_points"] = (
-      getattr(ds, "options", {}).get("region", "challenge") in ("challenge", "sweep"))
+    results["av2"]["challenge_points"] = av2_eval.challenge_points(ds)
   if writer:
     results["submission"] = {"summary": writer.summary(), "note": writer.note}
   return results

@@ -67,8 +67,9 @@ class SweepInfo:
             f"{100 * self.ego.inlier_fraction:.0f}% of the points within "
             f"{100 * settings.ego.inlier:.0f} cm of PC2's surfaces); "
             f"{len(self.objects.moved)} of {self.objects.candidates} candidate objects move "
-            f"({moved} points in them); the other {self.kept[0] + self.far[0] + self.ground[0] - moved} "
-            "PC1 points get the ego-motion flow"
+            f"({moved} points in them); the other "
+            f"{self.kept[0] + self.far[0] + self.ground[0] - moved} PC1 points get the ego-motion "
+            "flow"
             + ("; the method's flow was a start" if self.used_network else "")
             + "".join(f"\nnote: {n}" for n in self.notes))
 

@@ -97,7 +97,8 @@ def figure(pc1_Nx3, pc2_Mx3, flow_Nx3, up: str = "z", ego_flow=None, ground1=Non
     elif name == "dynamic":
       marker = dict(size=2.4, color=COLOURS["dynamic"], symbol="circle-open")  # colours show
       where = f"within {max_range:g} m, " if max_range else ""
-      label = f"dynamic (speed >= {DYNAMIC:g} m): {len(points)} of the drawn points ({where}no ground)"
+      label = (f"dynamic (speed >= {DYNAMIC:g} m): {len(points)} of the drawn points "
+               f"({where}no ground)")
     traces.append(go.Scatter3d(x=points[:, 0], y=points[:, 1], z=points[:, 2], mode="markers",
                                marker=marker, name=label,
                                visible=True if name in ("speed", "dynamic", "removed ground")
