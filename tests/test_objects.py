@@ -128,7 +128,7 @@ def test_a_parked_car_joined_to_a_passing_one_stays_still():
   pc1 = np.concatenate([parked(np.random.default_rng(5)), passing(np.random.default_rng(6), 4.0)])
   pc2 = np.concatenate([parked(np.random.default_rng(7)), passing(np.random.default_rng(8), 5.5)])
   height = pc1[:, 2]
-  label, _ = objects.groups(pc1, height)
+  label = objects.object_groups(pc1, height).label
   assert len(set(label)) == 1  # one group
   still = rigid.Motion(np.eye(3), np.zeros(3))
   flow, found = objects.object_flow(pc1, pc2, np.zeros(len(pc1), bool), np.zeros(len(pc2), bool),

@@ -10,18 +10,17 @@ several starts (standing still, the caller's flow, e.g. the network's, fitted ri
 translation of a search over +-`search_per_s` / `frame_rate_hz` m), each refined by a bird's-eye
 ICP (yaw and translation, point-to-line: jaxflow.geometry.registration; its height follows the
 ground), and keeps the motion that fits pc2 best, standing still unless another fits clearly
-better; a kept motion is refitted on all the object's points. Points no object claims keep the
-ego-motion. All in z-up coordinates, frame 1. The names are the fields of `settings`, the
-`objects` block of jaxflow/configs/sweep.py (default: its values).
+better (jaxflow.geometry.groups.beats); a kept motion is refitted on all the object's points.
+Points no object claims keep the ego-motion. All in z-up coordinates, frame 1. The names are the
+fields of `settings`, the `objects` block of jaxflow/configs/sweep.py (default: its values).
 """
 
 import dataclasses
 
 import numpy as np
-from scipy import ndimage
 
 from jaxflow.configs import sweep as sweep_config
-from jaxflow.geometry import neighbours, registration, rigid, visibility as views
+from jaxflow.geometry import groups, neighbours, registration, rigid, visibility as views
 from jaxflow.lidar import ego
 
 
@@ -75,24 +74,19 @@ def _mean(costs, min_seen: float) -> float:
   return float(costs[seen].mean()) if seen.mean() >= min_seen else 1.0
 
 
-def _better(still, moved, settings) -> bool:
-  """Whether a motion's costs beat standing still's clearly: by `margin`, by `relative_margin` of
-  still's cost, and by `significance` standard errors of the paired difference; where pc2 cannot
-  see the object standing still (a car come nearer along the line of sight hides its old place),
-  the motion alone must fit within `hidden_fit`."""
-  min_seen = settings.min_seen
-  if _mean(moved, min_seen) >= 1.0:
-    return False
-  if np.isfinite(still).mean() < min_seen:  # standing still, pc2 cannot see it: no evidence
-    return _mean(moved, min_seen) <= settings.hidden_fit  # either way; it must fit on its own
-  both = np.isfinite(still) & np.isfinite(moved)
-  if both.sum() < settings.min_points // 2:
-    return False
-  diff = still[both] - moved[both]
-  gain = diff.mean()
-  error = diff.std() / np.sqrt(len(diff))
-  return (gain >= max(settings.margin, settings.relative_margin * still[both].mean())
-          and gain >= settings.significance * error)
+def _rule(settings) -> groups.Rule:
+  """The objects block's judgement: a motion beats standing still by `margin`, by
+  `relative_margin` of still's cost and by `significance` standard errors."""
+  return groups.Rule(settings.margin, settings.relative_margin, settings.significance,
+                     settings.min_seen, settings.min_points // 2)
+
+
+def _clearly_better(base, other, settings) -> bool:
+  """groups.beats under the objects block's rule; where pc2 cannot see the base placement (a car
+  come nearer along the line of sight hides its old place), the other must fit within
+  `hidden_fit` on its own."""
+  verdict = groups.beats(base, other, _rule(settings))
+  return _mean(other, settings.min_seen) <= settings.hidden_fit if verdict is None else verdict
 
 
 def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
@@ -111,53 +105,116 @@ def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
   return rigid.Motion(np.eye(3), best)
 
 
-def _moving_parts(tree, points_Kx3, motion, visibility, ego_motion, truncate,
-                  settings) -> np.ndarray:
+def _moving_parts(scene, points_Kx3, motion, truncate) -> np.ndarray:
   """Bool K: the points of an object that move with `motion`. A group seen from above can join a
   moving car to the parked car beside it (a gap under two cells): split it by connectivity at
   `part_cell`, without bridging, and keep still every part of `min_points` that standing still
-  explains clearly better than the motion (`_better`, the test a motion passed against it)."""
-  part, count = cell_components(points_Kx3, np.ones(len(points_Kx3), bool), settings.part_cell,
-                                bridge=False)
+  explains clearly better than the motion (the test the motion passed against it)."""
+  s = scene.settings
+  parts = groups.cell_components(points_Kx3, np.ones(len(points_Kx3), bool), s.part_cell,
+                                 bridge=False)
   keep = np.ones(len(points_Kx3), bool)
-  if count < 2:
+  if parts.count < 2:
     return keep
-  still = _costs(tree, points_Kx3, visibility, ego_motion, truncate)
-  moving = _costs(tree, motion.apply(points_Kx3), visibility, ego_motion, truncate)
-  for k in range(count):
-    mine = part == k
-    if mine.sum() >= settings.min_points and _better(moving[mine], still[mine], settings):
+  still = scene.costs(points_Kx3, truncate)
+  moving = scene.costs(motion.apply(points_Kx3), truncate)
+  for _, mine in parts.members():
+    if len(mine) >= s.min_points and _clearly_better(moving[mine], still[mine], s):
       keep[mine] = False
   return keep
 
 
-def cell_components(points_Nx3, seeds_N, cell: float, bridge: bool):
-  """(label N, count): the 8-connected components of the cells (of `cell` m, seen from above) that
-  the `seeds_N` points occupy, gaps of one cell bridged when `bridge`; every point in a
-  component's cells gets its label (0 .. count - 1), the others -1."""
-  ij = np.floor(points_Nx3[:, :2] / cell).astype(np.int64)
-  if not seeds_N.any():
-    return np.full(len(points_Nx3), -1), 0
-  ij = ij - ij[seeds_N].min(0)
-  shape = ij[seeds_N].max(0) + 1
-  inside = (ij >= 0).all(1) & (ij < shape).all(1)
-  grid = np.zeros(shape, bool)
-  grid[ij[seeds_N, 0], ij[seeds_N, 1]] = True
-  if bridge:
-    grid = ndimage.binary_dilation(grid, np.ones((3, 3)))
-  labels, count = ndimage.label(grid, np.ones((3, 3)))
-  out = np.full(len(points_Nx3), -1)
-  out[inside] = labels[ij[inside, 0], ij[inside, 1]] - 1
-  return out, count
-
-
-def groups(points_Nx3, height_N, cell: float | None = None, bridge: bool = True, settings=None):
-  """Object label of each point (-1: none) by 8-connected occupied cells (default the settings'
-  cell) seen from above, from the points between 0 and `object_top` above the ground (gaps of a
-  cell bridged unless `bridge` is False); higher points join the object below."""
+def object_groups(points_Nx3, height_N, cell: float | None = None, bridge: bool = True,
+                  settings=None) -> groups.Groups:
+  """The objects of a sweep: 8-connected occupied cells (default the settings' cell) seen from
+  above, from the points between 0 and `object_top` above the ground (gaps of a cell bridged
+  unless `bridge` is False); higher points join the object below."""
   settings = sweep_config.block("objects", settings)
   low = (height_N > 0) & (height_N < settings.object_top)
-  return cell_components(points_Nx3, low, settings.cell if cell is None else cell, bridge)
+  return groups.cell_components(points_Nx3, low, settings.cell if cell is None else cell, bridge)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Scene:
+  """What every object of a pair is fitted and judged against: pc2 brought into frame 1."""
+  target: ego.Target  # pc2 seen from above (the ICP's point-to-line rows)
+  tree: neighbours.Tree  # pc2's points above the ground (3-D costs)
+  visibility: views.View  # what pc2's sensor saw (a placement it could not see: no evidence)
+  ego_motion: rigid.Motion
+  search: float  # m: an object's translation search, +- this (a frame's worth of search_per_s)
+  max_yaw_deg: float  # degrees an object may turn in a frame
+  settings: object  # the objects block
+
+  def costs(self, points_Kx3, truncate: float) -> np.ndarray:
+    return _costs(self.tree, points_Kx3, self.visibility, self.ego_motion, truncate)
+
+  def plausible(self, motion: rigid.Motion, points_Kx3) -> bool:
+    """No car turns or jumps farther than the limits in a frame."""
+    yaw = abs(np.degrees(np.arctan2(motion.rotation[1, 0], motion.rotation[0, 0])))
+    centre = points_Kx3.mean(0)
+    shift = np.linalg.norm(motion.apply(centre[None])[0] - centre)
+    return yaw <= self.max_yaw_deg and shift <= self.search + self.settings.search_slack
+
+
+def _is_candidate(idx, unexplained_N, height_N, pc1_Nx3, s) -> bool:
+  """Whether a group is worth fitting: enough points, enough of them the ego-motion leaves
+  unexplained, and not structure (a facade, a tree, one column of a far wall's returns)."""
+  if len(idx) < s.min_points or (unexplained_N[idx].mean() < s.min_unexplained
+                                 and unexplained_N[idx].sum() < s.many_unexplained):
+    return False
+  return not (np.ptp(pc1_Nx3[idx, :2], axis=0).max() > s.max_size
+              or (height_N[idx] > s.object_top).mean() > s.max_high)
+
+
+def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng):
+  """(start name, motion, truncation) of an object's best motion, or None when standing still
+  is not clearly beaten. `given_Kx3`: where a caller's flow takes the points (frame 1), or None.
+  Motions are searched on half the points and judged on the other half: the best of many motions
+  fits its own points better than standing still by chance alone."""
+  s = scene.settings
+  shuffled = pts_Kx3[rng.permutation(len(pts_Kx3))]
+  sample, judge = shuffled[0::2][:s.search_points], shuffled[1::2]
+  starts = {"search": _search(scene.tree, sample, scene.search, s)}
+  if given_Kx3 is not None:
+    starts["network"] = rigid.kabsch(pts_Kx3, given_Kx3)
+  spacing = np.median(neighbours.Tree(pts_Kx3).knn(judge, 2, distances=True)[0][:, 1])
+  truncate = float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
+  still_costs = scene.costs(judge, truncate)
+  best_name, best, best_costs = "still", rigid.Motion(np.eye(3), np.zeros(3)), still_costs
+  for name, start in starts.items():
+    for m in (start, _bev_icp(scene.target, sample, start, s)):
+      if not scene.plausible(m, judge):
+        continue
+      c = scene.costs(m.apply(judge), truncate)
+      if _mean(c, s.min_seen) < _mean(best_costs, s.min_seen):
+        best_name, best, best_costs = name, m, c
+  if best_name == "still" or not _clearly_better(still_costs, best_costs, s):
+    return None
+  refit = _bev_icp(scene.target, pts_Kx3, best, s)  # chosen on halves: now fitted on all points
+  if _mean(scene.costs(refit.apply(pts_Kx3), truncate), s.min_seen) <= _mean(
+      scene.costs(best.apply(pts_Kx3), truncate), s.min_seen):
+    best = refit
+  return best_name, best, truncate
+
+
+def _on_the_ground(motion: rigid.Motion, pts_Kx3, surface) -> rigid.Motion:
+  """`motion` with its height following the ground under the object's new place."""
+  centre = pts_Kx3.mean(0)
+  new_centre = motion.apply(centre[None])[0]
+  below = np.r_[new_centre[:2], centre[2]][None]
+  rise = surface.height(centre[None])[0] - surface.height(below)[0]
+  return rigid.Motion(motion.rotation, motion.translation + [0, 0, rise])
+
+
+def _low_ground_under(pts_Kx3, pc1_Nx3, ground1_N, height_N, s) -> np.ndarray:
+  """Indices of the ground points (higher than `low_ground`) in an object's cells: its own lowest
+  points, which fell under the ground's margin."""
+  cells = set(map(tuple, np.floor(pts_Kx3[:, :2] / s.cell).astype(np.int64)))
+  low = np.flatnonzero(ground1_N & (height_N > s.low_ground))
+  if not len(low):
+    return low
+  keys = np.floor(pc1_Nx3[low, :2] / s.cell).astype(np.int64)
+  return low[np.array([tuple(c) in cells for c in keys])]
 
 
 def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion, surface=None,
@@ -171,8 +228,6 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   (default: the config's)."""
   s = sweep_config.block("objects", settings)
   rate = sweep_config.defaults().frame_rate_hz if frame_rate_hz is None else frame_rate_hz
-  search, max_yaw_deg = s.search_per_s / rate, s.max_yaw_deg_per_s / rate
-  min_seen = s.min_seen
   pc1 = np.asarray(pc1_Nx3, np.float64)
   ground1 = np.asarray(ground1_N, bool)
   flow = ego_motion.flow(pc1).astype(np.float64)
@@ -184,69 +239,33 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     return flow.astype(np.float32), Found(0, 0, [])
   height = surface.height(pc1) if surface is not None else pc1[:, 2] - pc1[ground1, 2].mean() if (
     ground1.any()) else pc1[:, 2] - pc1[:, 2].min()
-  label, count = groups(pc1, np.where(ground1, -1.0, height), settings=s)
-  label[ground1] = -1
+  found = object_groups(pc1, np.where(ground1, -1.0, height), settings=s).without(ground1)
   unexplained = _per_point(target, pc1) > s.unexplained
-  tree = neighbours.Tree(above2)
-  visibility = views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden)
+  scene = _Scene(target, neighbours.Tree(above2),
+                 views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden),
+                 ego_motion, s.search_per_s / rate, s.max_yaw_deg_per_s / rate, s)
+  given = None if start_flow_Nx3 is None else back.apply(
+    pc1 + np.asarray(start_flow_Nx3, np.float64))
   rng = np.random.default_rng(seed)
   moved, candidates = [], 0
-  order = np.argsort(label, kind="stable")
-  bounds = np.searchsorted(label[order], np.arange(count + 1))
-  for k in range(count):
-    idx = order[bounds[k]:bounds[k + 1]]
-    if len(idx) < s.min_points or (unexplained[idx].mean() < s.min_unexplained
-                                   and unexplained[idx].sum() < s.many_unexplained):
+  for _, idx in found.members():
+    if not _is_candidate(idx, unexplained, height, pc1, s):
       continue
-    pts = pc1[idx]
-    if (np.ptp(pts[:, :2], axis=0).max() > s.max_size
-        or (height[idx] > s.object_top).mean() > s.max_high):
-      continue  # structure: a facade, a tree, or one column of a far wall's returns
     candidates += 1
-    # Motions are searched on half the points and judged on the other half: the best of many
-    # motions fits its own points better than standing still by chance alone.
-    shuffled = pts[rng.permutation(len(pts))]
-    sample, judge = shuffled[0::2][:s.search_points], shuffled[1::2]
-    still = rigid.Motion(np.eye(3), np.zeros(3))
-    starts = {"search": _search(tree, sample, search, s)}
-    if start_flow_Nx3 is not None and np.isfinite(start_flow_Nx3[idx]).all():
-      given = back.apply(pts + np.asarray(start_flow_Nx3, np.float64)[idx])
-      starts["network"] = rigid.kabsch(pts, given)
-    spacing = np.median(neighbours.Tree(pts).knn(judge, 2, distances=True)[0][:, 1])
-    truncate = float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
-    still_costs = _costs(tree, judge, visibility, ego_motion, truncate)
-    best_name, best, best_costs = "still", still, still_costs
-    for name, start in starts.items():
-      for m in (start, _bev_icp(target, sample, start, s)):
-        yaw = abs(np.degrees(np.arctan2(m.rotation[1, 0], m.rotation[0, 0])))
-        shift = np.linalg.norm(m.apply(judge.mean(0)[None])[0] - judge.mean(0))
-        if yaw > max_yaw_deg or shift > search + s.search_slack:  # no car turns or jumps so
-          continue
-        c = _costs(tree, m.apply(judge), visibility, ego_motion, truncate)
-        if _mean(c, min_seen) < _mean(best_costs, min_seen):
-          best_name, best, best_costs = name, m, c
-    if best_name == "still" or not _better(still_costs, best_costs, s):
+    pts = pc1[idx]
+    usable = given is not None and np.isfinite(given[idx]).all()
+    fit = _fit_object(scene, pts, given[idx] if usable else None, rng)
+    if fit is None:
       continue
-    refit = _bev_icp(target, pts, best, s)  # chosen on halves: now fitted on all points
-    if _mean(_costs(tree, refit.apply(pts), visibility, ego_motion, truncate), min_seen) <= _mean(
-        _costs(tree, best.apply(pts), visibility, ego_motion, truncate), min_seen):
-      best = refit
-    if surface is not None:  # on the ground: the height follows it
-      centre = pts.mean(0)
-      new_centre = best.apply(centre[None])[0]
-      below = np.r_[new_centre[:2], centre[2]][None]  # the ground under the new place
-      rise = surface.height(centre[None])[0] - surface.height(below)[0]
-      best = rigid.Motion(best.rotation, best.translation + [0, 0, rise])
-    parts = _moving_parts(tree, pts, best, visibility, ego_motion, truncate, s)
+    name, best, truncate = fit
+    if surface is not None:
+      best = _on_the_ground(best, pts, surface)
+    parts = _moving_parts(scene, pts, best, truncate)
     idx, pts = idx[parts], pts[parts]
     flow[idx] = best.then(ego_motion).flow(pts)
     yaw = float(np.degrees(np.arctan2(best.rotation[1, 0], best.rotation[0, 0])))
-    moved.append((len(idx), best.translation, yaw, best_name))
-    if surface is not None:  # the object's own lowest points fell under the ground margin
-      cells = set(map(tuple, np.floor(pts[:, :2] / s.cell).astype(np.int64)))
-      low = np.flatnonzero(ground1 & (height > s.low_ground))
-      if len(low):
-        keys = np.floor(pc1[low, :2] / s.cell).astype(np.int64)
-        mine = low[np.array([tuple(c) in cells for c in keys])]
-        flow[mine] = best.then(ego_motion).flow(pc1[mine])
-  return flow.astype(np.float32), Found(count, candidates, moved)
+    moved.append((len(idx), best.translation, yaw, name))
+    if surface is not None:
+      low = _low_ground_under(pts, pc1, ground1, height, s)
+      flow[low] = best.then(ego_motion).flow(pc1[low])
+  return flow.astype(np.float32), Found(found.count, candidates, moved)

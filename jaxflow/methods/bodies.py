@@ -32,7 +32,7 @@ import dataclasses
 
 import numpy as np
 
-from jaxflow.geometry import neighbours, registration, rigid
+from jaxflow.geometry import groups, neighbours, registration, rigid
 from jaxflow.geometry.visibility import OUTSIDE, SEEN, View
 
 
@@ -93,28 +93,30 @@ def _slides(points_Kx3, normals_Kx3, motion, world, most: float) -> bool:
   return bool(np.median(across / np.maximum(np.linalg.norm(departure, axis=1), 1e-9)) < most)
 
 
-def _join_world(best_N, motions, bodies_found, pc1, normals_Nx3, target, view, settings):
+def _join_world(best_N, motions, body_of, pc1, normals_Nx3, target, view, settings):
   """best_N with every body moved to the world (motion 0) that the world's motion explains as well
-  as its own: judged on the points pc2 would see under the world's motion when `min_seen` of them
-  are; when it takes most of them out of pc2's view, the body joins if its own motion is a slide
-  of the world's. A body mostly hidden under the world's motion keeps its own."""
+  as its own (jaxflow.geometry.groups.beats: its own must beat the world's by `merge`), judged on
+  the points pc2 would see under the world's motion when `min_seen` of them are; when it takes
+  most of them out of pc2's view, the body joins if its own motion is a slide of the world's. A
+  body mostly hidden under the world's motion keeps its own. `body_of`: each motion's body."""
   world = motions[0]
   moved = world.apply(pc1)
   state = view.state(moved)
-  world_cost = target.plane_distance(moved, settings.truncate)
+  seen_N = state == SEEN
+  world_cost = np.where(seen_N, target.plane_distance(moved, settings.truncate), np.nan)
+  rule = groups.Rule(margin=settings.merge, min_seen=settings.min_seen)
   out = best_N.copy()
-  for h in np.unique(best_N):
-    if h % bodies_found == 0:
+  for h, pts in groups.Groups(best_N, len(motions)).members():
+    if body_of[h] == 0 or not len(pts):
       continue
-    pts = np.flatnonzero(best_N == h)
-    seen = state[pts] == SEEN
-    if seen.mean() >= settings.min_seen:
-      own = target.plane_distance(motions[h].apply(pc1[pts[seen]]), settings.truncate)
-      joins = world_cost[pts[seen]].mean() <= own.mean() + settings.merge
-    else:
-      joins = (state[pts] == OUTSIDE).mean() >= 0.5 and _slides(
-        pc1[pts], normals_Nx3[pts], motions[h], world, settings.slide)
-    if joins:
+    seen = seen_N[pts]
+    own = np.full(len(pts), np.nan)
+    own[seen] = target.plane_distance(motions[h].apply(pc1[pts[seen]]), settings.truncate)
+    stays = groups.beats(world_cost[pts], own, rule)
+    if stays is None:  # out of pc2's view under the world's motion
+      stays = not ((state[pts] == OUTSIDE).mean() >= 0.5 and _slides(
+        pc1[pts], normals_Nx3[pts], motions[h], world, settings.slide))
+    if not stays:
       out[pts] = 0
   return out
 
@@ -184,6 +186,36 @@ def _subset(indices, most: int, rng):
   return indices if len(indices) <= most else np.sort(rng.choice(indices, most, replace=False))
 
 
+def _costs(motions, body_of, pc1, flow, label_N, nbr_NxK, target, settings):
+  """(cost N x H, choice N x H) of each point under each motion H: the mean over its neighbours of
+  their distances to pc2's planes (inf where the motion may not be taken: a body is contiguous, a
+  point takes only a motion whose body a neighbour holds, or any where a neighbour holds none),
+  and the cost plus what ties are broken by (departing from the starting flow, not the world)."""
+  n, bodies_found = len(pc1), body_of.max() + 1
+  every = np.arange(n)
+  held = np.zeros((n, bodies_found + 1), bool)
+  held[every[:, None], label_N[nbr_NxK]] = True
+  allowed = held[:, body_of] | held[:, -1:]
+  cost_NxH = np.full((n, len(motions)), np.inf)
+  choice_NxH = np.full_like(cost_NxH, np.inf)
+  cost_N, departure_N = np.empty(n), np.empty(n)
+  for h, motion in enumerate(motions):
+    # Costs only where the motion may be taken (the world's: everywhere, bodies join it), each
+    # the mean over the point's neighbours: those are the points whose cost is needed.
+    rows = every if body_of[h] == 0 else np.flatnonzero(allowed[:, h])
+    if not len(rows):
+      continue
+    need = every if len(rows) == n else np.unique(nbr_NxK[rows])
+    moved = motion.apply(pc1[need])
+    cost_N[need] = target.plane_distance(moved, settings.truncate)
+    departure_N[need] = np.minimum(np.linalg.norm(moved - pc1[need] - flow[need], axis=1), 1.0)
+    cost_NxH[rows, h] = cost_N[nbr_NxK[rows]].mean(1)
+    choice_NxH[rows, h] = (cost_NxH[rows, h] + settings.pull * departure_N[nbr_NxK[rows]].mean(1)
+                           + settings.stick * (departure_N[rows] > settings.inlier)
+                           + settings.world * (body_of[h] != 0))
+  return cost_NxH, choice_NxH
+
+
 def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   """(flow N x 3 float32, Found): `flow_Nx3` made piecewise rigid where rigid motions fit pc2
   (module docstring). A flow that is not finite, or too few points, is returned unchanged with a
@@ -211,42 +243,21 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   bins = round(360 / settings.view_bin_deg), round(180 / settings.view_bin_deg)
   view = View(pc2, "y", *bins, settings.hidden)  # the model frame: y up
   normals1 = neighbours.local_spread(pc1, 10, tree1)[1][:, :, 0]
+  # Each body's refined motion, then its unrefined one: both stay candidates of the body.
   motions = [_icp(target, pc1[sample[_subset(inl, settings.icp_points, rng)]], m,
                   settings.icp_rounds, settings.icp_scales, settings) for m, inl in found]
-  motions += [m for m, _ in found]  # the unrefined motions stay candidates
-  # A body is contiguous: a point may take only a motion that a neighbour takes (at first, one
-  # whose hypothesis the neighbour supported in the starting flow).
-  label_N = np.full(len(pc1), -1)
-  for h, (_, inl) in enumerate(found):
+  motions += [m for m, _ in found]
+  body_of = np.tile(np.arange(len(found)), 2)
+  label_N = np.full(len(pc1), len(found))  # unsupported: any motion
+  for h, (_, inl) in enumerate(found):  # at first, the body whose hypothesis a point supported
     label_N[sample[inl]] = h
-  label_N = np.where(label_N >= 0, label_N, len(found))  # unsupported: any motion
-  smooth = lambda per_point_N: per_point_N[nbr_NxK].mean(1)
-  start_cost = smooth(target.plane_distance(pc1 + flow, settings.truncate))
-  every = np.arange(len(pc1))
+  start_cost = target.plane_distance(pc1 + flow, settings.truncate)[nbr_NxK].mean(1)
   for round_ in range(settings.em_rounds + 1):
-    held = np.zeros((len(pc1), len(found) + 1), bool)
-    held[every[:, None], label_N[nbr_NxK]] = True
-    allowed = held[:, np.arange(len(motions)) % len(found)] | held[:, -1:]
-    cost_NxH = np.full((len(pc1), len(motions)), np.inf)
-    choice_NxH = np.full_like(cost_NxH, np.inf)
-    cost_N, departure_N = np.empty(len(pc1)), np.empty(len(pc1))
-    for h, motion in enumerate(motions):
-      # Costs only where the motion may be taken (the world's: everywhere, bodies join it), each
-      # the mean over the point's neighbours: those are the points whose cost is needed.
-      rows = every if h % len(found) == 0 else np.flatnonzero(allowed[:, h])
-      if not len(rows):
-        continue
-      need = every if len(rows) == len(pc1) else np.unique(nbr_NxK[rows])
-      moved = motion.apply(pc1[need])
-      cost_N[need] = target.plane_distance(moved, settings.truncate)
-      departure_N[need] = np.minimum(np.linalg.norm(moved - pc1[need] - flow[need], axis=1), 1.0)
-      cost_NxH[rows, h] = cost_N[nbr_NxK[rows]].mean(1)
-      choice_NxH[rows, h] = (cost_NxH[rows, h] + settings.pull * departure_N[nbr_NxK[rows]].mean(1)
-                             + settings.stick * (departure_N[rows] > settings.inlier)
-                             + settings.world * (h % len(found) != 0))
-    best_N = np.argmin(choice_NxH, 1)
-    best_N = _join_world(best_N, motions, len(found), pc1, normals1, target, view, settings)
-    label_N = best_N % len(found)
+    cost_NxH, choice_NxH = _costs(motions, body_of, pc1, flow, label_N, nbr_NxK, target,
+                                  settings)
+    best_N = _join_world(np.argmin(choice_NxH, 1), motions, body_of, pc1, normals1, target, view,
+                         settings)
+    label_N = body_of[best_N]
     if round_ == settings.em_rounds:
       break
     motions = [_icp(target, pc1[_subset(np.flatnonzero(best_N == h), settings.icp_points, rng)],
