@@ -32,13 +32,12 @@ from jaxflow.errors import ConfigError, JaxflowError
 EXIT_USER_ERROR = 2
 # The settings evaluate.py and predict use when no --config is given (8192 points, 32 iterations).
 EVAL_CONFIG = f"{Path(__file__).absolute().parent / 'configs' / 'default.py'}:eval"
-# The lidar method's settings (jaxflow.lidar.sweep, predict --lidar) when no --sweep file is given.
-SWEEP_CONFIG = str(Path(__file__).absolute().parent / "configs" / "sweep.py")
 # Old spellings -> the flag that replaced them (every tool refuses the old one, naming the new).
 RENAMED = {"save-flows": "save_flows", "max-points": "max_points", "corr-chunk": "corr_chunk",
            "max-range": "max_range", "num-processes": "num_processes",
            "process-id": "process_id", "print-config": "print_config",
-           "config.eval.test_time": "--method optimise (config.eval.test_time was removed)"}
+           "config.eval.test_time": "--method optimise (config.eval.test_time was removed)",
+           "sweep": "method.lidar"}
 
 
 def fail(message: str):
@@ -121,30 +120,14 @@ def take_method_fields(argv: list[str]) -> list[str]:
   return kept
 
 
-def method_fields(method: str) -> dict:
+def method_fields(method: str, also: tuple = ()) -> dict:
   """{field: value} of the command line's --method.METHOD.FIELD=V (a ConfigError when they name
-  another method than --method)."""
-  other = sorted({m for m, _ in _METHOD_FIELDS if m != method})
+  a method other than `method` and `also`: predict --lidar --method X takes lidar's and X's)."""
+  other = sorted({m for m, _ in _METHOD_FIELDS if m != method and m not in also})
   if other:
     raise ConfigError(f"--method.{other[0]}.* sets the {other[0]} method's settings, but the "
                       f"method is {method} (--method {other[0]} to run it)")
-  return {field: value for (_, field), value in _METHOD_FIELDS.items()}
-
-
-def settings_config(method: str, lidar: bool = False):
-  """The config of the command line's settings file for `method` (the lidar method's --sweep), None
-  for a method whose settings are --method.NAME.FIELD; a ConfigError when --sweep is given for
-  such a method (unless `lidar`: predict --lidar --method X runs the sweep pipeline too)."""
-  from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
-
-  flag = registry.get(method).settings_flag
-  if flag is not None:
-    return flags.FLAGS[flag].value
-  given = flags.FLAGS["sweep"]
-  if not lidar and (given.present or config_flags.get_override_values(given)):
-    raise ConfigError(f"--sweep sets the lidar method's settings, but the method is {method} "
-                      "(--method lidar to run it)")
-  return None
+  return {field: value for (m, field), value in _METHOD_FIELDS.items() if m == method}
 
 
 def check_renamed(argv: list[str], renamed: dict[str, str]):
@@ -158,6 +141,8 @@ def check_renamed(argv: list[str], renamed: dict[str, str]):
     for old, new in renamed.items():
       if name == old or name.startswith(old + "."):
         new = new if new.startswith("--") else "--" + new
+        if " " not in new:  # a field of a renamed block: the same field of the new one
+          new += name[len(old):]
         fail(f"--{name} is now {new}")
 
 
@@ -192,9 +177,6 @@ def define_run_flags(default_method: str):
   flags.DEFINE_enum("method", default_method, list(registry.METHODS), "; ".join(
     f"{name}: {m.summary}" for name, m in registry.REGISTRY.items())
     + f" (docs/methods.md). Default {default_method}.")
-  config_flags.DEFINE_config_file(
-    "sweep", SWEEP_CONFIG, "--method lidar (predict --lidar): the sweep pipeline's settings "
-    "(units in --print_config)", lock_config=True)
   flags.DEFINE_integer("steps", None, "Cap the optimisation steps of nsfp / optimise.")
   flags.DEFINE_enum("objective", None, ["exact", "grid"], "--method nsfp: NSFP's objective, exact "
                     "(default: two-way Chamfer, k-d tree every step) or grid (one-way distance "
@@ -272,15 +254,20 @@ def _parse_flags(argv: list[str], config_names=(),
     for name in config_names:
       path = config_flags.get_config_filename(flags.FLAGS[name])
       text.append(configfile.describe(flags.FLAGS[name].value, path.split(":")[0], name) + "\n")
-    if "method" in flags.FLAGS:  # predict, evaluate.py: the method's settings as it would run
+    if "method" in flags.FLAGS:  # predict, evaluate.py: the methods' settings as they would run
       from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
+      method = flags.FLAGS.method
+      lidar = "lidar" in flags.FLAGS and flags.FLAGS.lidar and method != "lidar"
+      names = (method, "lidar") if lidar else (method,)  # predict --lidar --method X: both
       try:
-        chosen = registry.settings(flags.FLAGS.method, flags.FLAGS.steps, flags.FLAGS.iters,
-                                   flags.FLAGS.objective, method_fields(flags.FLAGS.method))
+        chosen = [registry.settings(method, flags.FLAGS.steps, flags.FLAGS.iters,
+                                    flags.FLAGS.objective, method_fields(method, names))]
+        chosen += [registry.settings("lidar", fields=method_fields("lidar", names))] * lidar
       except ConfigError as e:
         fail(str(e))
-      if chosen is not None and registry.get(flags.FLAGS.method).settings_flag is None:
-        text.append(configfile.describe_settings(chosen, f"method.{flags.FLAGS.method}") + "\n")
+      for name, settings in zip(names, chosen):
+        if settings is not None:
+          text.append(configfile.describe_settings(settings, f"method.{name}") + "\n")
     _write_and_exit("".join(text))
   from jaxflow.runtime import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)
   try:  # before jax starts its threads, before anything compiles

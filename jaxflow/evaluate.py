@@ -59,7 +59,7 @@ def main(argv):
   distributed.initialize_from_flags()
   config, model_fields = cli.run_settings(FLAGS.config)
   chosen = registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective,
-                             cli.method_fields(FLAGS.method), cli.settings_config(FLAGS.method))
+                             cli.method_fields(FLAGS.method))
   on_batch = []
   if FLAGS.save_flows:
     on_batch.append(export.FlowSaver(FLAGS.save_flows).add)
@@ -74,7 +74,7 @@ def main(argv):
 
 def run():
   """The console script `jaxflow-evaluate`."""
-  cli.run(main, _define_flags, {"config": cli.EVAL_CONFIG, "sweep": cli.SWEEP_CONFIG},
+  cli.run(main, _define_flags, {"config": cli.EVAL_CONFIG},
           {"render": "render_dir"})
 
 

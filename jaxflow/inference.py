@@ -19,7 +19,7 @@ and one rigid motion per moving object; every pc1 point gets a row. The method i
 camera's view (under half the azimuth: the non-ground points within `max_range`), or as one more
 start for the fits with `use_network=True` (predict --lidar with an explicit --method);
 `DeferredPredictor` loads the checkpoint only then. `sweep_settings`: the pipeline's settings
-(jaxflow/configs/sweep.py's get_config(), changed; None: its defaults); `max_range` None: theirs.
+(a jaxflow.lidar.settings.Sweep; None: its defaults); `max_range` None: theirs.
 """
 
 import dataclasses
@@ -105,7 +105,7 @@ class Predictor:
               corr_chunk: int | None = DEFAULT_CORR_CHUNK, seed: int = 0, names=("pc1", "pc2"),
               lidar: bool = False, up: str | None = None, max_range: float | None = None,
               ground_limits: bool = True, use_network: bool = False,
-              sweep_settings: ml_collections.ConfigDict | None = None) -> Prediction:
+              sweep_settings=None) -> Prediction:
     """The Prediction of every point of pc1 (the module docstring: sampling, full, lidar). `up`:
     the clouds' up axis (default z with lidar, else y, the models' frame; jaxflow.geometry.frames):
     the clouds are rotated into the models' frame for the method and the flow back. `corr_chunk`
@@ -178,7 +178,7 @@ class Predictor:
 def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: str | None = None,
                      max_range: float | None = None, ground_limits: bool = True,
                      use_network: bool = False,
-                     sweep_settings: ml_collections.ConfigDict | None = None,
+                     sweep_settings=None,
                      **kwargs) -> Prediction:
   """The Prediction of raw sweeps (jaxflow.lidar.sweep); `get_predictor()` gives the method's
   Predictor, called only when the method runs (a camera's view, or `use_network`): a 360-degree
@@ -229,7 +229,7 @@ class DeferredPredictor:
   def predict(self, pc1_Nx3, pc2_Mx3, lidar: bool = False, names=("pc1", "pc2"),
               up: str | None = None, max_range: float | None = None,
               ground_limits: bool = True, use_network: bool = False,
-              sweep_settings: ml_collections.ConfigDict | None = None, **kwargs) -> Prediction:
+              sweep_settings=None, **kwargs) -> Prediction:
     if not lidar:
       return self.get().predict(pc1_Nx3, pc2_Mx3, names=names, up=up,
                                 ground_limits=ground_limits, **kwargs)
@@ -321,7 +321,7 @@ def predict_flow(pc1_Nx3, pc2_Mx3, method: str | None = None, checkpoint=None,
                  full: bool = False, corr_chunk: int = DEFAULT_CORR_CHUNK, seed: int = 0,
                  predictor: Predictor | None = None, lidar: bool = False, up: str | None = None,
                  max_range: float | None = None, ground_limits: bool = True,
-                 sweep_settings: ml_collections.ConfigDict | None = None,
+                 sweep_settings=None,
                  method_fields: dict | None = None) -> np.ndarray:
   """Flow N x 3 (float32) of every point of pc1 towards pc2 by `method` (default DEFAULT_METHOD,
   `optimise`, as `python -m jaxflow.predict`) with `method_fields` of its settings changed

@@ -1,7 +1,7 @@
 r"""Scene flow of your own point files (jaxflow-predict): the flow of every point of PC1.
 
     python -m jaxflow.predict SWEEP1 SWEEP2 --lidar [--up z] [--max_range 35] --out FLOW.npy
-        [--sweep.objects.max_yaw_deg_per_s=100 ...]
+        [--method.lidar.objects.max_yaw_deg_per_s=100 ...]
     python -m jaxflow.predict PC1 PC2 --out FLOW.npy [--method optimise|network|nsfp]
         [--checkpoint PATH] [--config CONFIG] [--iters 32] [--max_points 8192 | --full
         [--corr_chunk 2048]] [--seed 0] [--steps N] [--objective exact|grid] [--render VIEW.png]
@@ -37,8 +37,8 @@ included, moves with the ego-motion. A note says what was found. The method runs
 (under half the azimuth: its non-ground points within --max_range, 35 m, the others getting the
 rigid motion of its static part) and, on a 360-degree sweep, only when --method is given: its flow
 is then one more start of the fits (slow; benchmarks/REAL_SWEEPS.md). Otherwise no checkpoint is
-loaded. --noground_limits skips the up-axis check. --sweep.FIELD=V sets the pipeline's settings
-(jaxflow/configs/sweep.py; --print_config lists them with their units).
+loaded. --noground_limits skips the up-axis check. --method.lidar.FIELD=V sets the pipeline's
+settings (jaxflow.lidar.settings; --print_config lists them with their units).
 
 Model. The checkpoint (default: the shipped jaxflow/checkpoints/jaxflow_synthetic/) carries its
 config: the model is built from it. --config (default configs/default.py:eval) only sets evaluation
@@ -95,7 +95,7 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
                     "frame): rotated into the models' frame, the flow back. Default: the axis PC1 "
                     "is flat along (a note says so), else z with --lidar, y without.")
   flags.DEFINE_float("max_range", None, "--lidar: keep the points within this horizontal distance "
-                     "(m) of the sensor (default --sweep.max_range, 35); 0: all.")
+                     "(m) of the sensor (default --method.lidar.max_range, 35); 0: all.")
   flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
   flags.DEFINE_string("ego_out", None, "--lidar: also write the sensor's estimated motion here, "
                       "a 4 x 4 matrix as text (x2 = R x1 + t, in the clouds' axes): the flow minus "
@@ -125,10 +125,12 @@ def main(argv):
   # --method lidar is --lidar: a camera's view then runs the default method.
   lidar = FLAGS.lidar or FLAGS.method == "lidar"
   name = inference.DEFAULT_METHOD if FLAGS.method == "lidar" else FLAGS.method
-  method = name, FLAGS.steps, FLAGS.objective, FLAGS.iters, cli.method_fields(FLAGS.method)
+  both = (name, "lidar") if lidar else (name,)  # --lidar --method X: X's settings and lidar's
+  method = name, FLAGS.steps, FLAGS.objective, FLAGS.iters, cli.method_fields(name, both)
   # A wrong --method.X.FIELD is said now, not when (if) the predictor loads.
-  registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective, method[-1],
-                    cli.settings_config(FLAGS.method, lidar))
+  registry.settings(name, FLAGS.steps, FLAGS.iters, FLAGS.objective, method[-1])
+  sweep_settings = registry.settings("lidar", fields=cli.method_fields("lidar", both)) if (
+    lidar) else None
   if not FLAGS.out and not FLAGS.save_flows and not FLAGS.submission:
     raise ConfigError("give --out FLOW.npy, --save_flows DIR or --submission DIR")
   if FLAGS.ego_out and not lidar:
@@ -152,7 +154,7 @@ def main(argv):
     pc1, pc2, num_iters=num_iters, max_points=max_points, full=not max_points,
     corr_chunk=None, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=lidar,
     up=FLAGS.up, max_range=FLAGS.max_range, ground_limits=FLAGS.ground_limits,
-    use_network=use_method, sweep_settings=FLAGS.sweep)
+    use_network=use_method, sweep_settings=sweep_settings)
   up = prediction.up
   if prediction.sweep is not None:
     print(f"note: {prediction.sweep.note()}", file=sys.stderr)
@@ -208,7 +210,7 @@ def main(argv):
 def run(default_method: str = inference.DEFAULT_METHOD, description: str | None = None):
   """The console script `jaxflow-predict` (`python -m jaxflow.nsfp`: default_method nsfp)."""
   cli.run(main, lambda: _define_flags(default_method),
-          {"config": cli.EVAL_CONFIG, "sweep": cli.SWEEP_CONFIG}, description=description)
+          {"config": cli.EVAL_CONFIG}, description=description)
 
 
 if __name__ == "__main__":

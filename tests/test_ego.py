@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from jaxflow.configs import sweep as sweep_config
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.geometry import rigid
 from jaxflow.lidar import ego, ground
+from jaxflow.lidar.settings import DEFAULTS
 
 
 def errors(motion, sweep):
@@ -62,7 +62,7 @@ def test_pc2_in_another_frame_is_warned_about(slow_sweep):
   c, sn = np.cos(np.radians(40)), np.sin(np.radians(40))
   turned = s.pc2 @ np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]).T + [30.0, -12.0, 0.0]
   result = ego.estimate(s.pc1, turned)
-  assert result.inlier_fraction < sweep_config.get_config().ego.plausible_inliers
+  assert result.inlier_fraction < DEFAULTS.ego.plausible_inliers
   assert "explains only" in result.note and "consecutive sweeps" in result.note
 
 

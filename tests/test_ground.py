@@ -5,12 +5,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from jaxflow.configs import sweep as sweep_config
 from jaxflow.errors import ConfigError, DataError
 from jaxflow.geometry import rigid
 from jaxflow.lidar import ground
+from jaxflow.lidar.settings import DEFAULTS
 
-MARGIN = sweep_config.get_config().ground.margin  # metres above the ground still ground
+MARGIN = DEFAULTS.ground.margin  # metres above the ground still ground
 
 
 def rotation(axis_3, degrees):

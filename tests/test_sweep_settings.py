@@ -1,6 +1,7 @@
-"""jaxflow/configs/sweep.py: the raw-sweep pipeline's settings, from Python (raw_sweep_flow,
-predict_flow) and from predict's command line (--sweep.FIELD, --print_config)."""
+"""jaxflow.lidar.settings: the raw-sweep pipeline's settings, from Python (raw_sweep_flow,
+predict_flow) and from predict's command line (--method.lidar.FIELD, --print_config)."""
 
+import dataclasses
 import os
 import re
 import subprocess
@@ -10,10 +11,8 @@ import numpy as np
 import pytest
 
 from jaxflow import inference
-from jaxflow.runtime import configfile
-from jaxflow.configs import sweep as sweep_config
 from jaxflow.data import synthetic_sweep as ss
-from jaxflow.lidar import ego, sweep
+from jaxflow.lidar import ego, settings as lidar_settings, sweep
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m.
@@ -21,7 +20,7 @@ STILL = {"max_yaw_deg_per_s": 0.0, "search_per_s": 0.0}
 
 
 def test_the_per_second_settings_at_10_hz_are_the_per_frame_numbers():
-  config = sweep_config.get_config()
+  config = lidar_settings.Sweep()
   rate = config.frame_rate_hz
   assert rate == 10.0 and config.max_range == 35.0
   assert config.objects.search_per_s / rate == 3.5  # metres a frame
@@ -29,9 +28,9 @@ def test_the_per_second_settings_at_10_hz_are_the_per_frame_numbers():
   for field, frame in (("search_yaw_deg_per_s", np.arange(-6.0, 6.01, 1.0)),
                        ("search_x_per_s", np.arange(-4.0, 4.01, 0.5)),
                        ("search_y_per_s", np.arange(-1.5, 1.51, 0.5))):
-    lowest, highest, step = (v / rate for v in config.ego[field])
+    lowest, highest, step = (v / rate for v in getattr(config.ego, field))
     np.testing.assert_array_equal(np.arange(lowest, highest + step / 2, step), frame)
-    assert ego.search_grid(config.ego[field], rate).tobytes() == frame.tobytes()  # bit for bit
+    assert ego.search_grid(getattr(config.ego, field), rate).tobytes() == frame.tobytes()
   np.testing.assert_array_equal(ego.search_grid(config.ego.search_x_per_s, 20.0),
                                 np.arange(-2.0, 2.01, 0.25))  # a 20 Hz sensor: half as far
 
@@ -41,12 +40,10 @@ def pair():
   return ss.sweep_pair("val", 2, ss.Options(scale=0.2))  # ~21k points, 4 moving objects found
 
 
-def changed(frame_rate_hz=None, **objects):
-  config = sweep_config.get_config()
-  config.objects.update(objects)
-  if frame_rate_hz is not None:
-    config.frame_rate_hz = frame_rate_hz
-  return config
+def changed(frame_rate_hz=10.0, **objects):
+  base = lidar_settings.Sweep()
+  return dataclasses.replace(base, frame_rate_hz=frame_rate_hz,
+                             objects=dataclasses.replace(base.objects, **objects))
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +55,7 @@ def flows(pair):
 
 def test_a_setting_changes_the_flow_through_the_api(pair, flows):
   (flow, info), (still, still_info) = flows["default"], flows["still"]
-  assert len(info.objects.moved) >= 2 and info.settings == sweep_config.defaults()
+  assert len(info.objects.moved) >= 2 and info.settings == lidar_settings.Sweep()
   assert still_info.settings.objects.max_yaw_deg_per_s == 0.0
   assert len(still_info.objects.moved) < len(info.objects.moved)
   assert np.abs(still - flow).max() > 1.0  # the movers' flows are gone
@@ -76,8 +73,8 @@ def test_a_setting_changes_the_flow_through_the_api(pair, flows):
 def test_a_ground_setting_reaches_every_ground_mask(pair, flows):
   """ground.margin (the surfaces carry it): more points are ground in both sweeps, and the
   masks the pictures draw are those counted."""
-  config = sweep_config.get_config()
-  config.ground.margin = 0.6
+  base = lidar_settings.Sweep()
+  config = dataclasses.replace(base, ground=dataclasses.replace(base.ground, margin=0.6))
   _, wide = sweep.raw_sweep_flow(None, pair.pc1, pair.pc2, settings=config)
   default = flows["default"][1]
   assert wide.ground[0] > default.ground[0] and wide.ground[1] > default.ground[1]
@@ -102,9 +99,13 @@ def runs(tmp_path_factory, pair):
   procs = {
     "default": predict(*lidar, "--out", d / "default.npy"),
     "still": predict(*lidar, "--out", d / "still.npy",
-                     *(f"--sweep.objects.{k}={v}" for k, v in STILL.items())),
-    "print_config": predict("--print_config", "--sweep.objects.max_yaw_deg_per_s=5"),
-    "nope": predict(*lidar, "--out", d / "nope.npy", "--sweep.objects.nope=1"),
+                     *(f"--method.lidar.objects.{k}={v}" for k, v in STILL.items())),
+    "print_config": predict("--print_config", "--lidar", "--method.optimise.rigid_steps=3",
+                            "--method.lidar.objects.max_yaw_deg_per_s=5"),
+    "nope": predict(*lidar, "--out", d / "nope.npy", "--method.lidar.objects.nope=1"),
+    "old": predict(*lidar, "--out", d / "old.npy", "--sweep.objects.cell=0.2"),
+    "other": predict(d / "a.npy", d / "b.npy", "--out", d / "other.npy",
+                     "--method.lidar.objects.cell=0.2"),
   }
   out = {k: (*p.communicate(timeout=600), p.returncode) for k, p in procs.items()}
   return d, out
@@ -123,28 +124,58 @@ def test_predict_sweep_flags_change_the_flow(runs, flows):
   np.testing.assert_allclose(default, flows["default"][0], atol=1e-5)
 
 
+def _field_paths(block, prefix=""):
+  """Every leaf field of a settings dataclass, dotted."""
+  out = []
+  for f in dataclasses.fields(block):
+    value = getattr(block, f.name)
+    out += (_field_paths(value, f"{prefix}{f.name}.") if dataclasses.is_dataclass(value)
+            else [prefix + f.name])
+  return out
+
+
 @pytest.mark.slow
 def test_print_config_lists_the_sweep_settings_with_units(runs):
   stdout, stderr, rc = runs[1]["print_config"]
   assert rc == 0, stderr[-2000:]
-  lines = [l for l in stdout.splitlines() if l.startswith("sweep.")]
-  fields = configfile.field_paths(sweep_config.get_config())
+  lines = [l for l in stdout.splitlines() if l.startswith("method.lidar.")]
+  fields = _field_paths(lidar_settings.Sweep())
   assert len(lines) == len(fields) > 50
   assert any(l.startswith("config.eval.") for l in stdout.splitlines())  # and the first config
+  assert "method.optimise.rigid_steps = 3" in stdout  # --lidar --method X: X's settings too
   for field in fields:
-    (line,) = [l for l in lines if l.startswith(f"sweep.{field} = ")]
+    (line,) = [l for l in lines if l.startswith(f"method.lidar.{field} = ")]
     assert "  # " in line, line  # every field has its comment
-  assert ("sweep.objects.max_yaw_deg_per_s = 5.0  # deg/s: an object turning faster is refused"
-          in lines)  # the override applied
-  assert ("sweep.objects.search_per_s = 35.0  # m/s: an object's translation search, +- this"
-          in lines)
-  assert any(l.startswith("sweep.frame_rate_hz = 10.0  # ") for l in lines)
+  assert ("method.lidar.objects.max_yaw_deg_per_s = 5.0  # deg/s: an object turning faster is "
+          "refused" in lines)  # the override applied
+  assert ("method.lidar.objects.search_per_s = 35.0  # m/s: an object's translation search, +- "
+          "this" in lines)
+  assert any(l.startswith("method.lidar.frame_rate_hz = 10.0  # ") for l in lines)
 
 
 @pytest.mark.slow
-def test_an_unknown_sweep_field_is_one_line_and_exit_2(runs):
-  _, stderr, rc = runs[1]["nope"]
+@pytest.mark.parametrize("run, says", [
+  ("nope", "method.lidar.objects.nope: no field 'nope' in Objects"),
+  ("old", "--sweep.objects.cell is now --method.lidar.objects.cell"),
+  ("other", "--method.lidar.* sets the lidar method's settings, but the method is optimise"),
+])
+def test_a_wrong_sweep_field_is_one_line_and_exit_2(runs, run, says):
+  _, stderr, rc = runs[1][run]
   assert rc == 2
   errors = [l for l in stderr.splitlines() if l.startswith("error:")]
-  assert len(errors) == 1 and "--sweep.objects.nope=1" in errors[0], stderr
+  assert len(errors) == 1 and says in errors[0], stderr
   assert "Traceback" not in stderr
+
+
+def test_a_bad_value_is_refused_naming_its_field():
+  with pytest.raises(ValueError, match=r"objects\.cell: -0\.3"):
+    lidar_settings.Objects(cell=-0.3)
+  with pytest.raises(ValueError, match=r"ego\.gicp_iterations: 2\.5"):
+    lidar_settings.Ego(gicp_iterations=2.5)
+  with pytest.raises(ValueError, match=r"ground\.surface_windows"):
+    lidar_settings.Ground(surface_windows=(5, float("nan")))
+  with pytest.raises(ValueError, match="frame_rate_hz must be > 0"):
+    lidar_settings.Sweep(frame_rate_hz=0.0)
+  lidar_settings.Ground(min_sensor_height=-2.0)  # signed fields may be negative
+  with pytest.raises(Exception, match="jaxflow.lidar.settings.Sweep"):
+    sweep.raw_sweep_flow(None, np.zeros((10, 3)), np.zeros((10, 3)), settings={"max_range": 5})

@@ -15,8 +15,8 @@ Every start's result and zero motion itself are candidates, and the best of them
 points it explains (GICP has no robust loss: traffic beside the sensor pulls it); the one with the
 least static residual (`Residual`: truncated point-to-plane distance of pc1 to pc2's local planes)
 is returned, so a fit that explains the world worse than standing still never is. The tuning is
-`settings`, the `ego` block of jaxflow/configs/sweep.py (default: its values); the search's
-per-second motions are divided by `frame_rate_hz` (default the config's, 10 Hz).
+`settings`, jaxflow.lidar.settings.Ego (default: its values); the search's per-second motions are
+divided by `frame_rate_hz` (default the settings', 10 Hz).
 """
 
 import dataclasses
@@ -24,8 +24,8 @@ import dataclasses
 import numpy as np
 import small_gicp
 
-from jaxflow.configs import sweep as sweep_config
 from jaxflow.geometry import neighbours, registration, rigid
+from jaxflow.lidar.settings import DEFAULTS
 
 # small_gicp on one thread: its parallel sums differ by rounding from run to run (1 of 320k flow
 # values by 1e-8 under load), and the same call must give the same flow (2.0 s a pair, 1.55 s on 2).
@@ -46,7 +46,7 @@ class EgoMotion:
 
 def _rate(frame_rate_hz):
   """The frame rate given, or the config's (10 Hz)."""
-  return sweep_config.defaults().frame_rate_hz if frame_rate_hz is None else frame_rate_hz
+  return DEFAULTS.frame_rate_hz if frame_rate_hz is None else frame_rate_hz
 
 
 def search_grid(lowest_highest_step, frame_rate_hz: float) -> np.ndarray:
@@ -73,7 +73,7 @@ class Registration:
   def __init__(self, pc1_Nx3, pc2_Mx3, _targets=None, settings=None):
     self.pc1 = np.ascontiguousarray(pc1_Nx3, np.float64)
     self.pc2 = np.ascontiguousarray(pc2_Mx3, np.float64)
-    self.settings = sweep_config.block("ego", settings)
+    self.settings = DEFAULTS.ego if settings is None else settings
     self._sources, self._targets = {}, {} if _targets is None else _targets
 
   def clouds(self, voxel: float, count: int):
@@ -133,7 +133,7 @@ class Residual:
   def __init__(self, source_Kx3, target_Lx3, normals_Lx3, settings=None):
     self.source = source_Kx3
     self.target = registration.PlaneTarget(target_Lx3, normals_Lx3)
-    settings = sweep_config.block("ego", settings)
+    settings = DEFAULTS.ego if settings is None else settings
     self.truncate, self.inlier = settings.truncate, settings.inlier
 
   def per_point(self, motion: rigid.Motion, points_Kx3=None) -> np.ndarray:
@@ -153,7 +153,7 @@ class Target:
   direction (or none: a blob). jaxflow.lidar.objects's residuals and the coarse `search`."""
 
   def __init__(self, pc2_Mx3, ground2_M=None, settings=None):
-    settings = sweep_config.block("ego", settings)
+    settings = DEFAULTS.ego if settings is None else settings
     k, self.max_match = settings.neighbours, settings.max_match
     above = np.asarray(pc2_Mx3, np.float64)
     if ground2_M is not None:
@@ -201,7 +201,7 @@ def search(target: Target, above_Kx3, scale: float = 0.5, settings=None,
   """The best yaw x forward x lateral motion of a coarse grid (the settings' search_*_per_s a
   frame): the least mean bird's-eye distance of the moved points to pc2's, each at most `scale`
   (one k-d tree query for the whole grid)."""
-  settings, rate = sweep_config.block("ego", settings), _rate(frame_rate_hz)
+  settings, rate = DEFAULTS.ego if settings is None else settings, _rate(frame_rate_hz)
   yaw, x, y = np.meshgrid(np.radians(search_grid(settings.search_yaw_deg_per_s, rate)),
                           search_grid(settings.search_x_per_s, rate),
                           search_grid(settings.search_y_per_s, rate), indexing="ij")
@@ -221,7 +221,7 @@ def estimate(pc1_Nx3, pc2_Mx3, ground1_N=None, ground2_M=None, starts=None, seed
   """The ego-motion of two z-up sweeps (module docstring). `starts`: extra named start motions
   (e.g. {"network": Motion}); `ground1_N`, `ground2_M` (optional): ground points, left out of the
   coarse search seen from above (GICP uses every point)."""
-  settings = sweep_config.block("ego", settings)
+  settings = DEFAULTS.ego if settings is None else settings
   pc1 = np.asarray(pc1_Nx3, np.float64)
   pc2 = np.asarray(pc2_Mx3, np.float64)
   identity = rigid.Motion.of(np.eye(3), np.zeros(3))

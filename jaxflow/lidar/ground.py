@@ -9,18 +9,17 @@
 The benchmark layouts remove ground by height (KITTI's camera frame: y < -1.4) and keep 35 m
 (the KITTI loader's convention); a raw sweep has neither. `check_up_axis` refuses an up axis
 under which the sweep's largest plane, most likely its ground, stands upright; `check_ground`
-notes a ground that looks wrong. jaxflow.lidar.sweep uses all of it for the
-flow of raw sweep pairs. The tuning is `settings`, the `ground` block of jaxflow/configs/sweep.py
-(default: its values).
+notes a ground that looks wrong. jaxflow.lidar.sweep uses all of it for the flow of raw sweep
+pairs. The tuning is `settings`, jaxflow.lidar.settings.Ground (default: its values).
 """
 
 import dataclasses
 
 import numpy as np
 
-from jaxflow.configs import sweep as sweep_config
 from jaxflow.errors import DataError
 from jaxflow.geometry import frames
+from jaxflow.lidar.settings import DEFAULTS
 
 
 def horizontal_range(points_Nx3, up: str = "z") -> np.ndarray:
@@ -30,7 +29,7 @@ def horizontal_range(points_Nx3, up: str = "z") -> np.ndarray:
 
 
 def within_range(points_Nx3, up: str = "z",
-                 max_range: float | None = sweep_config.defaults().max_range):
+                 max_range: float | None = DEFAULTS.max_range):
   """Bool N: horizontal distance below max_range (all True for None or 0)."""
   if not max_range:
     return np.ones(len(points_Nx3), bool)
@@ -78,7 +77,7 @@ def _refit(points_Kx3, up_vector) -> tuple[np.ndarray, float]:
 
 
 def fit_ground(points_Nx3, up: str = "z",
-               max_range: float | None = sweep_config.defaults().max_range, seed: int = 0,
+               max_range: float | None = DEFAULTS.max_range, seed: int = 0,
                name: str = "points", settings=None) -> Plane:
   """The ground plane of a sweep: RANSAC over the lowest points of each horizontal cell.
 
@@ -89,7 +88,7 @@ def fit_ground(points_Nx3, up: str = "z",
   `settings`. Seeded: the same sweep gives the same plane. Raises DataError(name) when no plane
   is found (fewer than 3 candidates, or none flat enough).
   """
-  settings = sweep_config.block("ground", settings)
+  settings = DEFAULTS.ground if settings is None else settings
   inlier, max_tilt_deg = settings.inlier, settings.max_tilt_deg
   k = frames.up_index(up)
   points = np.asarray(points_Nx3, np.float64)
@@ -206,7 +205,7 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
   and crowned roads are followed. A cell too far from any ground keeps the plane of the nearest
   window that has one. `extent`, `cell`: default the settings' surface_extent, surface_cell.
   """
-  settings = sweep_config.block("ground", settings)
+  settings = DEFAULTS.ground if settings is None else settings
   extent = settings.surface_extent if extent is None else extent
   cell = settings.surface_cell if cell is None else cell
   windows, max_tilt_deg = tuple(settings.surface_windows), settings.max_tilt_deg
@@ -270,7 +269,7 @@ def find_ground(points_Nx3, up: str = "z", name: str = "points",
   """(Surface, ground N bool) of a sweep: fit_ground's plane within `plane_range` (20 m), then
   fit_surface from it (what raw_sweep_flow does to each sweep). Raises fit_ground's DataError
   when the sweep has no ground plane."""
-  settings = sweep_config.block("ground", settings)
+  settings = DEFAULTS.ground if settings is None else settings
   plane = fit_ground(points_Nx3, up, settings.plane_range, name=name, settings=settings)
   surface = fit_surface(points_Nx3, up, plane, name, settings=settings)
   return surface, surface.ground(points_Nx3)
@@ -283,7 +282,7 @@ def check_ground(surface: Surface, ground_N, name: str, up: str, points_Nx3=None
   wrong up axis (a wall taken for the ground) `check_up_axis` on `points_Nx3` raises the error
   that names the right axis; otherwise the problem is returned as a note (None: no problem): a
   frame whose origin lies below the road, or a sweep of an empty car park, is data, not an error."""
-  settings = sweep_config.block("ground", settings)
+  settings = DEFAULTS.ground if settings is None else settings
   lowest, highest = settings.min_sensor_height, settings.max_sensor_height
   height, fraction = surface.sensor_height, float(np.mean(ground_N))
   problem = None
@@ -307,7 +306,7 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
   times `up_check_over_ground`), and lies where a ground would (within `max_sensor_height` of the
   origin): the ground is a sweep's largest plane, a wall rarely is. A perpendicular plane farther away (a facade beside a sweep
   whose ground was removed upstream) gives a note (returned) instead: `up` may well be right."""
-  settings = sweep_config.block("ground", settings)
+  settings = DEFAULTS.ground if settings is None else settings
   k = frames.up_index(up)
   p = np.asarray(points_Nx3, np.float64)
   p = p[np.isfinite(p).all(1)]

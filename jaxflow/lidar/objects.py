@@ -12,16 +12,16 @@ ICP (yaw and translation, point-to-line: jaxflow.geometry.registration; its heig
 ground), and keeps the motion that fits pc2 best, standing still unless another fits clearly
 better (jaxflow.geometry.groups.beats); a kept motion is refitted on all the object's points.
 Points no object claims keep the ego-motion. All in z-up coordinates, frame 1. The names are the
-fields of `settings`, the `objects` block of jaxflow/configs/sweep.py (default: its values).
+fields of `settings`, jaxflow.lidar.settings.Objects (default: its values).
 """
 
 import dataclasses
 
 import numpy as np
 
-from jaxflow.configs import sweep as sweep_config
 from jaxflow.geometry import groups, neighbours, registration, rigid, visibility as views
 from jaxflow.lidar import ego
+from jaxflow.lidar.settings import DEFAULTS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,7 +129,7 @@ def object_groups(points_Nx3, height_N, cell: float | None = None, bridge: bool 
   """The objects of a sweep: 8-connected occupied cells (default the settings' cell) seen from
   above, from the points between 0 and `object_top` above the ground (gaps of a cell bridged
   unless `bridge` is False); higher points join the object below."""
-  settings = sweep_config.block("objects", settings)
+  settings = DEFAULTS.objects if settings is None else settings
   low = (height_N > 0) & (height_N < settings.object_top)
   return groups.cell_components(points_Nx3, low, settings.cell if cell is None else cell, bridge)
 
@@ -226,8 +226,8 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   to start each object from (e.g. the network's). `settings`: the objects block; `ego_settings`:
   the ego block (pc2's bird's-eye ego.Target); `frame_rate_hz` divides the per-second limits
   (default: the config's)."""
-  s = sweep_config.block("objects", settings)
-  rate = sweep_config.defaults().frame_rate_hz if frame_rate_hz is None else frame_rate_hz
+  s = DEFAULTS.objects if settings is None else settings
+  rate = DEFAULTS.frame_rate_hz if frame_rate_hz is None else frame_rate_hz
   pc1 = np.asarray(pc1_Nx3, np.float64)
   ground1 = np.asarray(ground1_N, bool)
   flow = ego_motion.flow(pc1).astype(np.float64)

@@ -18,19 +18,18 @@ sensor's own motion is most of the flow:
 `flow_fn(pc1_kept, pc2_kept)` (e.g. the network on the non-ground points within `max_range`) is
 called only with `use_network=True`: its flow is then one more start for the ego-motion and for
 every object (benchmarks/METHODS.md measures what it adds). Any up axis: the work is done z up.
-The tuning is `settings` (jaxflow/configs/sweep.py; `python -m jaxflow.predict --print_config`
-lists its fields with their units).
+The tuning is `settings` (jaxflow.lidar.settings.Sweep; `python -m jaxflow.predict --method lidar
+--print_config` lists its fields with their units).
 """
 
 import dataclasses
 
-import ml_collections
 import numpy as np
 
-from jaxflow.configs import sweep as sweep_config
 from jaxflow.errors import ConfigError, DataError
 from jaxflow.geometry import frames, rigid
 from jaxflow.lidar import ego, ground, objects
+from jaxflow.lidar.settings import DEFAULTS, Sweep
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,11 +46,11 @@ class SweepInfo:
   used_network: bool
   notes: tuple = ()  # fits that failed or look wrong
   ground_masks: tuple = ()  # (pc1 N, pc2 M) bool: the points taken as ground (the pictures)
-  settings: ml_collections.FrozenConfigDict | None = None  # the settings used (None: defaults)
+  settings: Sweep = DEFAULTS  # the settings used
 
   def note(self) -> str:
     moved = sum(m[0] for m in self.objects.moved)
-    settings = sweep_config.defaults() if self.settings is None else self.settings
+    settings = self.settings
     cell = f"ground plane per {settings.ground.surface_cell:g} m cell"
     if self.ego.start == "flow_fn":  # a camera's view: the method's flow and its rigid part
       return (f"--lidar: {cell}; removed {self.ground[0]} ground and "
@@ -74,15 +73,14 @@ class SweepInfo:
             + "".join(f"\nnote: {n}" for n in self.notes))
 
 
-def settings_of(settings=None) -> ml_collections.FrozenConfigDict:
-  """`settings` (a ConfigDict of jaxflow/configs/sweep.py; None: its defaults), frozen; a
-  ConfigError for a frame rate that is not positive (it divides the motion limits)."""
+def settings_of(settings=None) -> Sweep:
+  """`settings` (a jaxflow.lidar.settings.Sweep; None: the defaults); a ConfigError for anything
+  else."""
   if settings is None:
-    return sweep_config.defaults()
-  if not isinstance(settings, ml_collections.FrozenConfigDict):
-    settings = ml_collections.FrozenConfigDict(settings)
-  if not settings.frame_rate_hz > 0:
-    raise ConfigError(f"sweep.frame_rate_hz must be > 0, got {settings.frame_rate_hz}")
+    return DEFAULTS
+  if not isinstance(settings, Sweep):
+    raise ConfigError("the raw-sweep pipeline's settings are a jaxflow.lidar.settings.Sweep, got "
+                      f"{type(settings).__name__}")
   return settings
 
 
@@ -98,11 +96,11 @@ def _surface(points_Nx3, name, notes, settings):
 def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | None = None,
                    names=("pc1", "pc2"), use_network: bool = False, ground_limits: bool = True,
                    moving_objects: bool = True, seed: int = 0,
-                   settings: ml_collections.ConfigDict | None = None
+                   settings: Sweep | None = None
                    ) -> tuple[np.ndarray, SweepInfo]:
   """Flow N x 3 (float32) of EVERY point of pc1 and a SweepInfo (module docstring);
   moving_objects=False: the ego-motion flow for every point (what the objects step adds).
-  `settings`: jaxflow/configs/sweep.py's get_config() or a changed copy (None: its defaults);
+  `settings`: a jaxflow.lidar.settings.Sweep (None: the defaults);
   `max_range` (m; 0: every point): default settings.max_range."""
   settings = settings_of(settings)
   max_range = settings.max_range if max_range is None else max_range

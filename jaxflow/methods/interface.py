@@ -30,5 +30,3 @@ class Method:
   build: Callable
   jitted: bool = False  # run is one jitted program (`.lower` compiles it ahead)
   compiles: bool = True  # its first call on new shapes compiles (evaluation warms it up untimed)
-  settings_flag: str | None = None  # its settings from this config flag (--sweep), no --method.NAME
-  from_config: Callable | None = None  # that flag's ConfigDict -> its settings (checked)

@@ -1,12 +1,13 @@
 """The `lidar` method: raw LiDAR sweeps by jaxflow.lidar.sweep (the ground, the sensor's
 ego-motion, one rigid motion per moving object; NumPy on the host, no network), each pair of a
 batch in turn. `predict --lidar` is this method on one pair (there a camera's view also runs a
-network method); its settings are jaxflow/configs/sweep.py (--sweep.FIELD=V)."""
+network method); its settings are jaxflow.lidar.settings.Sweep (--method.lidar.FIELD=V)."""
 
 import jax.numpy as jnp
 import numpy as np
 
 from jaxflow.lidar import sweep
+from jaxflow.lidar.settings import DEFAULTS
 from jaxflow.methods.interface import Method
 
 
@@ -24,6 +25,4 @@ def _build(network_for, settings):
 
 METHOD = Method("lidar", "raw LiDAR sweeps: ground, ego-motion and moving objects, no network",
                 up="z", needs_network=False,
-                defaults=lambda steps, iters, objective: sweep.settings_of(None), build=_build,
-                compiles=False, settings_flag="sweep",
-                from_config=sweep.settings_of)
+                defaults=lambda steps, iters, objective: DEFAULTS, build=_build, compiles=False)

@@ -16,7 +16,6 @@ A new method is a module with a METHOD, added to `_MODULES`.
 import dataclasses
 
 import jax
-import ml_collections
 import numpy as np
 
 from jaxflow.runtime import configfile
@@ -38,28 +37,20 @@ def get(method: str) -> Method:
 
 
 def settings(method: str, steps: int | None = None, iters: int | None = None,
-             objective: str | None = None, fields: dict | None = None,
-             config: ml_collections.ConfigDict | None = None):
-  """The settings of a method (None for `network`): its defaults with `steps` (the optimiser's
-  cap), `iters` (optimise's starting flow's network iterations), `objective` (NSFP's) applied,
-  then `fields`, {dotted field: value} at any depth (e.g. {"bodies.inlier": 0.1}; the command
-  line's --method.optimise.bodies.inlier=0.1; configfile.replace_settings). A method whose
-  settings are a config file's (`lidar`: --sweep) takes them as `config` instead of `fields`."""
-  chosen_method = get(method)
+             objective: str | None = None, fields: dict | None = None):
+  """The settings of a method (None for `network`), a frozen dataclass: its defaults with `steps`
+  (the optimiser's cap), `iters` (optimise's starting flow's network iterations), `objective`
+  (NSFP's) applied, then `fields`, {dotted field: value} at any depth (e.g. {"bodies.inlier":
+  0.1}; the command line's --method.optimise.bodies.inlier=0.1; configfile.replace_settings)."""
+  get(method)
   if objective is not None and method != "nsfp":
     raise ConfigError(f"--objective chooses NSFP's objective: it needs --method nsfp, not {method}")
   if steps is not None and steps < 0:
     raise ConfigError(f"--steps must be >= 0, got {steps}")
-  flag = chosen_method.settings_flag
-  if fields and (flag or method == "network"):
-    where = (f"--{flag}.FIELD=V" if flag else "the config's (--config.model.FIELD)")
-    raise ConfigError(f"--method {method} has no --method.{method}.* settings "
-                      f"({', '.join(fields)}); its settings are {where}")
-  if config is not None and not flag:
-    raise ConfigError(f"--method {method} takes no settings file (config given)")
-  chosen = chosen_method.defaults(steps, iters, objective)
-  if flag and config is not None:
-    return chosen_method.from_config(config)
+  if fields and method == "network":
+    raise ConfigError(f"--method network has no --method.network.* settings ({', '.join(fields)}); "
+                      "its settings are the config's (--config.model.FIELD)")
+  chosen = REGISTRY[method].defaults(steps, iters, objective)
   return configfile.replace_settings(chosen, fields, f"method.{method}") if fields else chosen
 
 
@@ -119,12 +110,8 @@ def model_predict_fn(model, num_iters: int, refine: bool, method: str = "network
 
 
 def settings_dict(chosen) -> dict | None:
-  """A method's settings as plain data (a dataclass's fields, a config's values)."""
-  if chosen is None:
-    return None
-  if isinstance(chosen, ml_collections.ConfigDict):
-    return chosen.to_dict()
-  return dataclasses.asdict(chosen)
+  """A method's settings as plain data (its dataclass's fields)."""
+  return None if chosen is None else dataclasses.asdict(chosen)
 
 
 def describe(method: str, chosen) -> dict:
