@@ -11,7 +11,9 @@ translation of a search over +-`search_per_s` / `frame_rate_hz` m), each refined
 ICP (yaw and translation, point-to-line: jaxflow.geometry.registration; its height follows the
 ground), and keeps the motion that fits pc2 best, standing still unless another fits clearly
 better (jaxflow.geometry.groups.beats); a kept motion is refitted on all the object's points.
-Points no object claims keep the ego-motion. All in z-up coordinates, frame 1. The names are the
+A walking person moves less a frame than `unexplained`: a group shaped as a person (narrow,
+upright, a person's height) first gets the shift of the centroid of pc2's points around it,
+kept when it beats standing still by the same rule. Points no object claims keep the ego-motion. All in z-up coordinates, frame 1. The names are the
 fields of `settings`, jaxflow.lidar.settings.Objects (default: its values).
 """
 
@@ -156,6 +158,33 @@ class _Scene:
     return yaw <= self.max_yaw_deg and shift <= self.search + self.settings.search_slack
 
 
+def _is_person(idx, pc1_Nx3, height_N, s) -> bool:
+  """Whether a group is shaped as a person: narrow from above, upright, a person's height."""
+  pts = pc1_Nx3[idx]
+  return bool(len(idx) >= s.min_points
+              and np.ptp(pts[:, :2], axis=0).max() <= s.person_size
+              and s.person_top[0] <= height_N[idx].max() <= s.person_top[1]
+              and np.ptp(height_N[idx]) >= s.person_upright)
+
+
+def _person_shift(scene, pts_Kx3):
+  """A person's horizontal motion: the centroid of pc2's points (above the ground, from above
+  within `person_radius` of the moved centre and at its height) minus the group's, iterated; None
+  when too few points of pc2 are there or the shift is under `person_min_shift`."""
+  s = scene.settings
+  centre, shift = pts_Kx3.mean(0), np.zeros(3)
+  above2 = scene.tree.points
+  for _ in range(s.person_rounds):
+    d = np.linalg.norm(above2[:, :2] - (centre[:2] + shift[:2]), axis=1)
+    near = (d < s.person_radius) & (np.abs(above2[:, 2] - centre[2]) < s.person_top[1] / 2)
+    if near.sum() < max(5, len(pts_Kx3) // 3):
+      return None
+    shift[:2] = above2[near, :2].mean(0) - centre[:2]
+  if np.linalg.norm(shift) < s.person_min_shift:
+    return None
+  return rigid.Motion(np.eye(3), shift)
+
+
 def _is_candidate(idx, unexplained_N, height_N, pc1_Nx3, s) -> bool:
   """Whether a group is worth fitting: enough points, enough of them the ego-motion leaves
   unexplained, and not structure (a facade, a tree, one column of a far wall's returns)."""
@@ -195,6 +224,21 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng):
       scene.costs(best.apply(pts_Kx3), truncate), s.min_seen):
     best = refit
   return best_name, best, truncate
+
+
+def _fit_person(scene, pts_Kx3):
+  """("person", shift, truncation) of a person's centroid shift (_person_shift) when it beats
+  standing still on the group's points, else None."""
+  shift = _person_shift(scene, pts_Kx3)
+  if shift is None:
+    return None
+  s = scene.settings
+  spacing = np.median(neighbours.Tree(pts_Kx3).knn(pts_Kx3, 2, distances=True)[0][:, 1])
+  truncate = float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
+  still = scene.costs(pts_Kx3, truncate)
+  if not _clearly_better(still, scene.costs(shift.apply(pts_Kx3), truncate), s):
+    return None
+  return "person", shift, truncate
 
 
 def _on_the_ground(motion: rigid.Motion, pts_Kx3, surface) -> rigid.Motion:
@@ -249,12 +293,14 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   rng = np.random.default_rng(seed)
   moved, candidates = [], 0
   for _, idx in found.members():
-    if not _is_candidate(idx, unexplained, height, pc1, s):
-      continue
-    candidates += 1
     pts = pc1[idx]
-    usable = given is not None and np.isfinite(given[idx]).all()
-    fit = _fit_object(scene, pts, given[idx] if usable else None, rng)
+    fit = _fit_person(scene, pts) if _is_person(idx, pc1, height, s) else None
+    if fit is None:
+      if not _is_candidate(idx, unexplained, height, pc1, s):
+        continue
+      usable = given is not None and np.isfinite(given[idx]).all()
+      fit = _fit_object(scene, pts, given[idx] if usable else None, rng)
+    candidates += 1
     if fit is None:
       continue
     name, best, truncate = fit

@@ -142,6 +142,14 @@ class Objects:
   hidden: float = 0.5  # m behind pc2's return in its direction: hidden
   hidden_fit: float = 0.45  # mean cost a motion must reach where pc2 hides still's place
   min_seen: float = 0.3  # share visible in pc2 below which a motion is refused
+  # A walking person moves 5-17 cm a frame, under `unexplained`: an upright person-sized group
+  # gets the shift of the centroid of pc2's points around it, kept when it beats standing still.
+  person_size: float = 1.2  # m: a person's group is at most this wide seen from above
+  person_top: tuple = (1.0, 2.3)  # m above the ground: where a person's highest point lies
+  person_upright: float = 0.9  # m: a person's points span at least this height
+  person_radius: float = 0.8  # m: pc2's points this near the moved centre (from above) are his
+  person_rounds: int = 3  # centroid shifts, each from the last
+  person_min_shift: float = 0.05  # m: a smaller shift is standing still
 
   def __post_init__(self):
     _check(self)
