@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from jaxflow.configs import ablation, default, pvraft
+from jaxflow.geometry import ops
 from jaxflow.network.model import build_model
 from jaxflow.summary import parameter_counts
 from jaxflow.training import losses
@@ -113,6 +114,35 @@ def test_recomputed_iterations_give_the_same_gradient_with_fewer_stored_activati
     np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * float(np.max(np.abs(b))))
   temp = lambda f: f.memory_analysis().temp_size_in_bytes
   assert temp(recomputed) < 0.8 * temp(stored), (temp(recomputed), temp(stored))
+
+
+@pytest.mark.slow
+def test_memory_grows_linearly_in_the_points_with_the_automatic_chunk(monkeypatch):
+  # corr_chunk 0 builds the kNN graphs and the correlation in chunks of rows once a B x N x M
+  # matrix outgrows ops.chunk_budget() (1 MiB here, a few hundred points): XLA's temporaries at
+  # twice the points stay near twice. Whole matrices (a budget they fit) grow them ~4x.
+  model = build_model(small_config(refine="none"))
+  params = init_fn(model)(*random_pair(0))
+
+  def temp(n, budget):
+    monkeypatch.setattr(ops, "chunk_budget", lambda: budget)
+    forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=2))
+    return forward.lower(params, *random_pair(0, n, n)).compile().memory_analysis(
+      ).temp_size_in_bytes
+
+  chunked = temp(2048, 1 << 20), temp(4096, 1 << 20)
+  assert chunked[1] < 2.3 * chunked[0], chunked
+  whole = temp(2048, 1 << 30), temp(4096, 1 << 30)
+  assert whole[1] > 3.0 * whole[0] and whole[1] > 2 * chunked[1], (whole, chunked)
+
+
+def test_automatic_chunk_rows():
+  budget = 64 << 20  # the CPU's (ops.CHUNK_BYTES)
+  assert ops.auto_chunk(1, 8192, 8192, 512, budget) == 512  # a given chunk is kept
+  assert ops.auto_chunk(1, 2048, 2048, 0, budget) == 0  # 16 MiB: whole
+  assert ops.auto_chunk(1, 8192, 8192, 0, budget) == 2048  # 64 MiB a chunk
+  assert ops.auto_chunk(2, 100_000, 100_000, 0, budget) == 64
+  assert ops.auto_chunk(4, 10**7, 10**7, 0, budget) == 16  # at least 16 rows
 
 
 def test_permuting_pc1_permutes_flow_and_pc2_order_does_not_matter():

@@ -116,6 +116,34 @@ def test_setconv_with_negative_norm_scales_and_its_gradient(seed):
     close(a, b, rtol=1e-4)
 
 
+@pytest.mark.parametrize("features", [16, 3])  # the edges' z part, and offsets only (3 -> z None)
+def test_setconv_by_blocks_of_points_equals_its_dense_form_with_gradients(features, monkeypatch):
+  # Blocks of 7 of the 40 points (the last one padded): the norm's sums, the max over neighbours
+  # and their gradients by blocks under lax.map, against autodiff of the written-out edges.
+  rng = np.random.default_rng(features)
+  xyz = cloud(features) + np.float32(5.0)
+  f = np.stack([xyz * 2] * 2)
+  if features > 3:
+    f = rng.normal(size=(2, 40, features)).astype(np.float32)
+  nbr = np.stack([ref.knn(xyz, 8)] * 2)
+  args = (jnp.asarray(f), jnp.asarray(np.stack([xyz] * 2)), jnp.asarray(nbr))
+  module = SetConv(32)
+  params = module.init(jax.random.PRNGKey(0), *args)["params"]
+  mid = params["gn1"]["scale"].shape[0]
+  params = {**params, "gn1": {"scale": jnp.asarray(rng.uniform(-1.5, 1.5, mid), jnp.float32),
+                              "bias": jnp.asarray(rng.normal(size=mid), jnp.float32)}}
+  monkeypatch.setattr(layers, "EDGE_BLOCK", 2 * 8 * mid * 7)
+  weights = jnp.asarray(rng.normal(size=(2, 40, 32)), jnp.float32)
+  loss = lambda fn: lambda p, x: jnp.sum(weights * jnp.sin(fn(p, x)))
+  ours = lambda p, x: module.apply({"params": p}, x, *args[1:])
+  dense = lambda p, x: dense_setconv(p, x, *args[1:])
+  close(jax.jit(ours)(params, args[0]), dense(params, args[0]))
+  got = jax.jit(jax.grad(loss(ours), (0, 1)))(params, args[0])
+  want = jax.grad(loss(dense), (0, 1))(params, args[0])
+  for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+    close(a, b, rtol=1e-4)
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("similarity", ["sum", "product"])
 def test_gcl_matches_loop(seed, similarity):
@@ -154,6 +182,24 @@ def test_gcl_neighbour_max_gradient_equals_autodiff_of_the_max(seed, similarity)
   for g, w in zip(got, want):
     close(g, w)
   assert np.count_nonzero(np.asarray(got[0])) > 0
+
+
+def test_gcl_neighbour_max_by_blocks_of_points_equals_the_whole_cloud(monkeypatch):
+  # Blocks of 5 of the 32 points (the last padded) against the whole cloud at once: values,
+  # winners and gradients the same.
+  rng = np.random.default_rng(4)
+  xyz = jnp.asarray(np.stack([cloud(4, n=32), cloud(5, n=32)]))
+  nbr = ops.knn(xyz, xyz, 6)
+  unit_v = layers.safe_normalize(ops.gather(xyz, nbr) - xyz[:, :, None, :])
+  support = jnp.asarray(rng.normal(size=(2, 32, 12)), jnp.float32)
+  unit_e = layers.safe_normalize(jnp.asarray(rng.normal(size=(12, 3)), jnp.float32)).T
+  weights = jnp.asarray(rng.normal(size=(2, 32, 12)), jnp.float32)
+  loss = lambda s, v, e: jnp.sum(weights * jnp.sin(layers.neighbour_max(s, v, e, nbr, "sum")))
+  whole = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2)))(support, unit_v, unit_e)
+  monkeypatch.setattr(layers, "EDGE_BLOCK", 2 * 6 * 12 * 5)
+  blocks = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2)))(support, unit_v, unit_e)
+  for a, b in zip(jax.tree_util.tree_leaves(blocks), jax.tree_util.tree_leaves(whole)):
+    np.testing.assert_array_equal(a, b)
 
 
 def correlation_inputs(seed, n=30, k=40):
@@ -237,6 +283,47 @@ def test_point_branch_matches_loop(seed):
                 p["voxel_act"]["negative_slope"])
   voxel = v @ p["voxel_out"]["kernel"] + p["voxel_out"]["bias"]
   close(got[0], point + voxel)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_point_branch_without_its_slot_values_equals_autodiff_of_them(seed):
+  # The point branch by v's moments and each channel's two extreme slots against the plain form
+  # (dense, GroupNorm, PReLU on every slot, the max), values and gradients; negative norm scales
+  # and PReLU slopes (init_apply) turn the norm over and make PReLU convex.
+  corr, cand, coords = correlation_inputs(seed)
+  module = PointVoxelCorrelation(knn=8, levels=1)
+  args = (jnp.asarray(corr)[None], jnp.stack(planar(jnp.asarray(cand)[None])),
+          jnp.asarray(coords)[None])
+  variables, _ = init_apply(module, seed, *args)
+
+  def plain(p, corr_, coords_):
+    offsets = [args[1][a] - coords_[:, :, a, None] for a in range(3)]
+    near = jax.lax.top_k(-sum(jax.lax.stop_gradient(o) ** 2 for o in offsets), 8)[1]
+    v = jnp.stack([jnp.take_along_axis(x, near, axis=2) for x in (corr_, *offsets)], axis=-1)
+    y = jnp.matmul(v, p["knn_conv"]["kernel"], precision="highest") + p["knn_conv"]["bias"]
+    g = y.reshape(*y.shape[:-1], 8, 8)
+    mean = g.mean(axis=(1, 2, 4), keepdims=True)
+    var = jnp.square(g - mean).mean(axis=(1, 2, 4), keepdims=True)
+    y = ((g - mean) / jnp.sqrt(var + 1e-5)).reshape(y.shape) * p["knn_norm"]["scale"]
+    y = y + p["knn_norm"]["bias"]
+    y = jnp.where(y >= 0, y, p["knn_act"]["negative_slope"] * y).max(axis=2)
+    return jnp.matmul(y, p["knn_out"]["kernel"], precision="highest") + p["knn_out"]["bias"]
+
+  def ours(p, corr_, coords_):  # the point branch alone: the voxel branch's output less
+    voxel = {**p, "knn_out": jax.tree_util.tree_map(jnp.zeros_like, p["knn_out"])}
+    return (module.apply({"params": p}, corr_, args[1], coords_)
+            - module.apply({"params": voxel}, corr_, args[1], coords_))
+
+  weights = jnp.asarray(np.random.default_rng(seed).normal(size=(1, 30, 64)), jnp.float32)
+  loss = lambda fn: lambda *a: jnp.sum(weights * jnp.sin(fn(*a)))
+  inputs = (variables["params"], args[0], args[2])
+  close(ours(*inputs), plain(*inputs), rtol=1e-4)
+  got = jax.jit(jax.grad(loss(ours), (0, 1, 2)))(*inputs)
+  want = jax.grad(loss(plain), (0, 1, 2))(*inputs)
+  got, want = jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)
+  assert len(got) == len(want) and np.any(np.asarray(got[-1]) != 0)
+  for a, b in zip(got, want):
+    close(a, b, rtol=1e-4)
 
 
 def test_truncated_correlation_is_topk_of_scaled_products():

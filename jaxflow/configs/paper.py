@@ -40,10 +40,12 @@ def model_config() -> ml_collections.ConfigDict:
   m.base_scale = 0.25  # metres (PV-RAFT's).
   m.refine = "graph"  # "graph" (paper 3.1.5), "setconv" (PV-RAFT's) or "none".
   m.refine_widths = ()  # graph refinement GCL widths; () = the paper's 256, 128, 64.
-  m.corr_chunk = 0  # >0: build the top-k correlation this many pc1 rows at a time (memory ~ N).
+  # The kNN graphs and the top-k correlation are built this many rows at a time (memory ~ N); 0:
+  # rows chosen from the clouds' sizes and the device's free memory (whole below 64 MiB a matrix).
+  m.corr_chunk = 0
   # True: the gradient recomputes each iteration instead of storing its activations. Same values;
   # a PV-RAFT training step on an H200 (B=2, 8192 points) 15.4 -> 5.3 GB of temporaries in the
-  # same time, 98 vs 100 ms (benchmarks/NETWORK_GPU.md); 5.5x less memory on the CPU. Not the
+  # same time, 98 vs 100 ms (benchmarks/NETWORK_GPU.md); on the CPU 3.3 -> 1.4 GiB. Not the
   # default: two CPU processes training together abort with it (gloo: a collective's size
   # mismatch; tests/test_distributed.py).
   m.remat_iterations = False

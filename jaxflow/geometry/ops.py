@@ -23,6 +23,31 @@ def squared_distances(a_BxNx3: jax.Array, b_BxMx3: jax.Array,
   return a2_BxNx1 + b2_Bx1xM - 2.0 * ab_BxNxM
 
 
+# model.corr_chunk 0 ("auto"): an N x M matrix (a kNN's distances, the correlation) is built in
+# chunks of rows whose B x rows x M float32 take at most this, or a sixteenth of the device's free
+# memory where JAX reports it (GPUs; the CPU reports none): memory linear in N at any size.
+CHUNK_BYTES = 64 << 20
+
+
+def chunk_budget() -> int:
+  """The bytes one chunk's matrix may take: CHUNK_BYTES, or a sixteenth of the default device's
+  free memory where JAX reports it and that is more."""
+  stats = jax.devices()[0].memory_stats() or {}
+  if "bytes_limit" not in stats:
+    return CHUNK_BYTES
+  return max(CHUNK_BYTES, (stats["bytes_limit"] - stats.get("bytes_in_use", 0)) // 16)
+
+
+def auto_chunk(b: int, n: int, m: int, chunk: int = 0, budget: int | None = None) -> int:
+  """The rows of a B x N x M float32 matrix built at a time: `chunk` when > 0; otherwise 0 (all
+  N) when it fits the budget (chunk_budget()), else the largest power of two rows that fit
+  (at least 16)."""
+  if chunk > 0:
+    return chunk
+  rows = (chunk_budget() if budget is None else budget) // (4 * b * m)
+  return 0 if rows >= n else max(16, 1 << (max(rows, 1).bit_length() - 1))
+
+
 def map_row_chunks(fn, xs, chunk: int):
   """Applies `fn` to row chunks of the arrays `xs` (each `B x N x ...`) and concatenates on axis 1.
 

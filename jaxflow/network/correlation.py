@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxflow.geometry import ops, select
-from jaxflow.network.layers import GroupNorm, dense, lax_precision
+from jaxflow.network.layers import DenseParams, GroupNorm, NormParams, dense, lax_precision
 
 # model.voxel_cells: how the voxel branch adds candidates into their cells (same values, the sums
 # in another order). "scatter": one scatter-add (B x N x K temporaries; XLA's CPU backend runs it
@@ -135,6 +135,58 @@ def _cell_means_bwd(cells, scatter, residuals, g_BxNxR):
 cell_means.defvjp(_cell_means_fwd, _cell_means_bwd)
 
 
+def affine_group_stats(v_BxNxQxD, w_DxC, b_C, groups: int, precision: str = "highest"):
+  """Mean and variance B x G of y = v w + b over every point, slot and channel of each group
+  of channels, from the mean and covariance of v (centred first: two-pass, as GroupNorm)."""
+  b, n, q, _ = v_BxNxQxD.shape
+  c = w_DxC.shape[-1]
+  mm = functools.partial(jnp.einsum, precision=lax_precision(precision))
+  mean_v_BxD = jnp.mean(v_BxNxQxD, axis=(1, 2))
+  centred = v_BxNxQxD - mean_v_BxD[:, None, None, :]
+  cov_BxDxD = mm("bnqd,bnqe->bde", centred, centred) / (n * q)
+  grouped = lambda a_BxC: a_BxC.reshape(b, groups, c // groups)
+  mean_BxGxS = grouped(mm("bd,dc->bc", mean_v_BxD, w_DxC) + b_C)
+  var_BxGxS = grouped(mm("bde,dc,ec->bc", cov_BxDxD, w_DxC, w_DxC))
+  mean_BxG = jnp.mean(mean_BxGxS, axis=-1)
+  return mean_BxG, jnp.mean(var_BxGxS + jnp.square(mean_BxGxS - mean_BxG[..., None]), axis=-1)
+
+
+def _slot_values(k_BxNxC, v_BxNxQxD, w_DxC, b_C):
+  """v w + b at slot k of each point and channel: B x N x C."""
+  y = b_C
+  for d in range(v_BxNxQxD.shape[-1]):
+    y = y + jnp.take_along_axis(v_BxNxQxD[..., d], k_BxNxC, axis=2) * w_DxC[d]
+  return y
+
+
+@jax.custom_vjp
+def slot_extremes(v_BxNxQxD, w_DxC, b_C):
+  """(max, min) over the Q slots of y = v w + b, per point and channel: two B x N x C.
+
+  The D products are written out, so that XLA fuses them into the reductions (no B x N x Q x C
+  tensor); the gradient goes to the slot that attains each (the first, in a tie).
+  """
+  return _slot_extremes_fwd(v_BxNxQxD, w_DxC, b_C)[0]
+
+
+def _slot_extremes_fwd(v_BxNxQxD, w_DxC, b_C):
+  y = b_C
+  for d in range(v_BxNxQxD.shape[-1]):
+    y = y + v_BxNxQxD[..., d, None] * w_DxC[d]
+  slots = [jnp.argmax(y, axis=2), jnp.argmin(y, axis=2)]
+  ends = tuple(_slot_values(k, v_BxNxQxD, w_DxC, b_C) for k in slots)
+  return ends, (slots, v_BxNxQxD, w_DxC, b_C)
+
+
+def _slot_extremes_bwd(residuals, g):
+  slots, v, w, b = residuals
+  _, vjp = jax.vjp(lambda *a: tuple(_slot_values(k, *a) for k in slots), v, w, b)
+  return vjp(g)
+
+
+slot_extremes.defvjp(_slot_extremes_fwd, _slot_extremes_bwd)
+
+
 class PointVoxelCorrelation(nn.Module):
   """Correlation feature J (B x N x 64) of the candidates around the current estimate."""
 
@@ -155,10 +207,20 @@ class PointVoxelCorrelation(nn.Module):
     near_BxNxQ = jax.lax.top_k(-dist_BxNxK, knn)[1]
     near_corr = jnp.take_along_axis(corr_BxNxK, near_BxNxQ, axis=2)
     near_offset = [jnp.take_along_axis(o, near_BxNxQ, axis=2) for o in offsets_3xBxNxK]
-    x = jnp.stack([near_corr, *near_offset], axis=-1)
-    x = dense(64, self.precision, name="knn_conv")(x)
-    x = nn.PReLU(negative_slope_init=0.25, name="knn_act")(GroupNorm(name="knn_norm")(x))
-    point_BxNxF = dense(self.features, self.precision, name="knn_out")(jnp.max(x, axis=2))
+    v_BxNxQx4 = jnp.stack([near_corr, *near_offset], axis=-1)
+    # max over the Q of PReLU(GroupNorm(dense(v))) without the B x N x Q x 64 values: the norm's
+    # statistics follow from v's mean and covariance (dense is affine), and the norm is a monotone
+    # map of each channel and PReLU convex or increasing, so the max over the Q is that of the
+    # two ends of each channel's range (`slot_extremes`).
+    w_4xC, b_C = DenseParams(64, name="knn_conv")(v_BxNxQx4.shape[-1])
+    scale_C, shift_C = NormParams(64, name="knn_norm")()
+    mean_BxG, var_BxG = affine_group_stats(v_BxNxQx4, w_4xC, b_C, 8, self.precision)
+    per_channel = lambda v_BxG: jnp.repeat(v_BxG, 64 // 8, axis=-1)[:, None, :]
+    mul_Bx1xC = per_channel(jax.lax.rsqrt(var_BxG + 1e-5)) * scale_C
+    act = nn.PReLU(negative_slope_init=0.25, name="knn_act")
+    ends = [act((y - per_channel(mean_BxG)) * mul_Bx1xC + shift_C)
+            for y in slot_extremes(v_BxNxQx4, w_4xC, b_C)]
+    point_BxNxF = dense(self.features, self.precision, name="knn_out")(jnp.maximum(*ends))
     # Voxel branch.
     cells = [
       planar_voxel_means(corr_BxNxK, offsets_3xBxNxK, self.base_scale * 2**level,

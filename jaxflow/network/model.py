@@ -104,16 +104,19 @@ class SceneFlowNet(nn.Module):
       refine = self.refine != "none"
     if refine and self.refine == "none":
       raise ValueError("refine=True asked of a model configured with refine='none'")
+    # corr_chunk 0: rows by the clouds' sizes and the device's memory (ops.auto_chunk).
+    chunk = lambda a, b: ops.auto_chunk(a.shape[0], a.shape[1], b.shape[1], self.corr_chunk)
     if graphs is None:
       nbr1_BxNxK, nbr2_BxMxK = (
-        ops.knn(pc, pc, self.knn, self.corr_chunk, self.precision, self.selection)
+        ops.knn(pc, pc, self.knn, chunk(pc, pc), self.precision, self.selection)
         for pc in (pc1_BxNx3, pc2_BxMx3))
     else:
       nbr1_BxNxK, nbr2_BxMxK = graphs
     f1 = self.feature_encoder(pc1_BxNx3, nbr1_BxNxK)
     f2 = self.feature_encoder(pc2_BxMx3, nbr2_BxMxK)
     corr_BxNxK, cand_xyz_BxNxKx3 = truncated_correlation(
-      f1, f2, pc2_BxMx3, self.truncate_k, self.corr_chunk, self.precision, self.selection
+      f1, f2, pc2_BxMx3, self.truncate_k, chunk(pc1_BxNx3, pc2_BxMx3), self.precision,
+      self.selection
     )
     cand_xyz_3xBxNxK = jnp.stack(planar(cand_xyz_BxNxKx3))  # once, not in every iteration
     context = self.context_encoder(pc1_BxNx3, nbr1_BxNxK)
