@@ -8,7 +8,7 @@ import pytest
 import numpy_reference as ref
 from jaxflow.evaluation import metrics
 from jaxflow.geometry import ops
-from jaxflow.network import layers
+from jaxflow.network import edges, layers
 from jaxflow.network.correlation import (PointVoxelCorrelation, planar, truncated_correlation,
                                          voxel_means)
 from jaxflow.network.layers import GCL, SetConv
@@ -132,7 +132,7 @@ def test_setconv_by_blocks_of_points_equals_its_dense_form_with_gradients(featur
   mid = params["gn1"]["scale"].shape[0]
   params = {**params, "gn1": {"scale": jnp.asarray(rng.uniform(-1.5, 1.5, mid), jnp.float32),
                               "bias": jnp.asarray(rng.normal(size=mid), jnp.float32)}}
-  monkeypatch.setattr(layers, "EDGE_BLOCK", 2 * 8 * mid * 7)
+  monkeypatch.setattr(edges, "EDGE_BLOCK", 2 * 8 * mid * 7)
   weights = jnp.asarray(rng.normal(size=(2, 40, 32)), jnp.float32)
   loss = lambda fn: lambda p, x: jnp.sum(weights * jnp.sin(fn(p, x)))
   ours = lambda p, x: module.apply({"params": p}, x, *args[1:])
@@ -196,7 +196,7 @@ def test_gcl_neighbour_max_by_blocks_of_points_equals_the_whole_cloud(monkeypatc
   weights = jnp.asarray(rng.normal(size=(2, 32, 12)), jnp.float32)
   loss = lambda s, v, e: jnp.sum(weights * jnp.sin(layers.neighbour_max(s, v, e, nbr, "sum")))
   whole = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2)))(support, unit_v, unit_e)
-  monkeypatch.setattr(layers, "EDGE_BLOCK", 2 * 6 * 12 * 5)
+  monkeypatch.setattr(edges, "EDGE_BLOCK", 2 * 6 * 12 * 5)
   blocks = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2)))(support, unit_v, unit_e)
   for a, b in zip(jax.tree_util.tree_leaves(blocks), jax.tree_util.tree_leaves(whole)):
     np.testing.assert_array_equal(a, b)

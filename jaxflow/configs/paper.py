@@ -41,7 +41,7 @@ def model_config() -> ml_collections.ConfigDict:
   m.refine = "graph"  # "graph" (paper 3.1.5), "setconv" (PV-RAFT's) or "none".
   m.refine_widths = ()  # graph refinement GCL widths; () = the paper's 256, 128, 64.
   # The kNN graphs and the top-k correlation are built this many rows at a time (memory ~ N); 0:
-  # rows chosen from the clouds' sizes and the device's free memory (whole below 64 MiB a matrix).
+  # rows chosen from the clouds' sizes and the device's memory (whole below 64 MiB a matrix).
   m.corr_chunk = 0
   # True: the gradient recomputes each iteration instead of storing its activations. Same values;
   # a PV-RAFT training step on an H200 (B=2, 8192 points) 15.4 -> 5.3 GB of temporaries in the

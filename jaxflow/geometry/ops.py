@@ -24,18 +24,17 @@ def squared_distances(a_BxNx3: jax.Array, b_BxMx3: jax.Array,
 
 
 # model.corr_chunk 0 ("auto"): an N x M matrix (a kNN's distances, the correlation) is built in
-# chunks of rows whose B x rows x M float32 take at most this, or a sixteenth of the device's free
+# chunks of rows whose B x rows x M float32 take at most this, or a sixteenth of the device's
 # memory where JAX reports it (GPUs; the CPU reports none): memory linear in N at any size.
 CHUNK_BYTES = 64 << 20
 
 
 def chunk_budget() -> int:
-  """The bytes one chunk's matrix may take: CHUNK_BYTES, or a sixteenth of the default device's
-  free memory where JAX reports it and that is more."""
-  stats = jax.devices()[0].memory_stats() or {}
-  if "bytes_limit" not in stats:
-    return CHUNK_BYTES
-  return max(CHUNK_BYTES, (stats["bytes_limit"] - stats.get("bytes_in_use", 0)) // 16)
+  """The bytes one chunk's matrix may take: CHUNK_BYTES, or a sixteenth of this process's first
+  device's memory where JAX reports it and that is more. The device's size, not what is free at
+  the moment: every process of a run must build the same program."""
+  stats = jax.local_devices()[0].memory_stats() or {}
+  return max(CHUNK_BYTES, stats.get("bytes_limit", 0) // 16)
 
 
 def auto_chunk(b: int, n: int, m: int, chunk: int = 0, budget: int | None = None) -> int:

@@ -304,8 +304,9 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
   """Refuses an up axis perpendicular to the sweep's largest plane when that plane holds a third
   of the points (`up_check_share`) and more than what was taken as ground (`ground_fraction`,
   times `up_check_over_ground`), and lies where a ground would (within `max_sensor_height` of the
-  origin): the ground is a sweep's largest plane, a wall rarely is. A perpendicular plane farther away (a facade beside a sweep
-  whose ground was removed upstream) gives a note (returned) instead: `up` may well be right."""
+  origin): the ground is a sweep's largest plane, a wall rarely is. A perpendicular plane farther
+  away (a facade beside a sweep whose ground was removed upstream) gives a note (returned)
+  instead: `up` may well be right."""
   settings = DEFAULTS.ground if settings is None else settings
   k = frames.up_index(up)
   p = np.asarray(points_Nx3, np.float64)

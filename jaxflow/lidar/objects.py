@@ -13,8 +13,9 @@ ground), and keeps the motion that fits pc2 best, standing still unless another 
 better (jaxflow.geometry.groups.beats); a kept motion is refitted on all the object's points.
 A walking person moves less a frame than `unexplained`: a group shaped as a person (narrow,
 upright, a person's height) first gets the shift of the centroid of pc2's points around it,
-kept when it beats standing still by the same rule. Points no object claims keep the ego-motion. All in z-up coordinates, frame 1. The names are the
-fields of `settings`, jaxflow.lidar.settings.Objects (default: its values).
+kept when it beats standing still by the same rule. Points no object claims keep the ego-motion.
+All in z-up coordinates, frame 1. The names are the fields of `settings`,
+jaxflow.lidar.settings.Objects (default: its values).
 """
 
 import dataclasses

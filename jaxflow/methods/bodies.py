@@ -144,10 +144,10 @@ def _sample_fits(src_Nx3, dst_Nx3, picks_Tx3):
   return rot, mu_b - np.einsum("tij,tj->ti", rot, mu_a)
 
 
-def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None) -> list:
-  """Sequential local RANSAC on p -> p + flow: [(rigid.Motion, inlier indices)].
-  `nbr_NxK`: each point's `settings.local` nearest (searched when not given). A hypothesis's
-  `trials` samples are drawn and scored at once."""
+def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None):
+  """(groups.Groups, [rigid.Motion]): sequential local RANSAC on p -> p + flow, group k the inliers
+  of motion k (-1: no motion's). `nbr_NxK`: each point's `settings.local` nearest (searched when
+  not given). A hypothesis's `trials` samples are drawn and scored at once."""
   target = pc1_Nx3 + flow_Nx3
   if nbr_NxK is None:
     nbr_NxK = neighbours.knn_graph(pc1_Nx3, settings.local)
@@ -179,7 +179,10 @@ def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None) -> list
       best = rigid.kabsch(pc1_Nx3[inliers], target[inliers])
     found.append((best, inliers))
     remaining = np.setdiff1d(remaining, inliers)
-  return found
+  label = np.full(len(pc1_Nx3), -1)
+  for k, (_, inliers) in enumerate(found):
+    label[inliers] = k
+  return groups.Groups(label, len(found)), [motion for motion, _ in found]
 
 
 def _subset(indices, most: int, rng):
@@ -235,7 +238,8 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   tree1 = neighbours.Tree(pc1)
   nbr_NxK = tree1.knn(pc1, settings.neighbours)
   whole = len(sample) == len(pc1) and settings.local == settings.neighbours  # one search serves
-  found = hypotheses(pc1[sample], flow[sample], settings, rng, nbr_NxK if whole else None)
+  support, found = hypotheses(pc1[sample], flow[sample], settings, rng,
+                              nbr_NxK if whole else None)
   if not found:
     return flow.astype(np.float32), Found(0, len(pc1), "bodies: no rigid motion has support; "
                                                       "the flow is returned unchanged")
@@ -245,12 +249,13 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   normals1 = neighbours.local_spread(pc1, 10, tree1)[1][:, :, 0]
   # Each body's refined motion, then its unrefined one: both stay candidates of the body.
   motions = [_icp(target, pc1[sample[_subset(inl, settings.icp_points, rng)]], m,
-                  settings.icp_rounds, settings.icp_scales, settings) for m, inl in found]
-  motions += [m for m, _ in found]
+                  settings.icp_rounds, settings.icp_scales, settings)
+             for m, (_, inl) in zip(found, support.members())]
+  motions += found
   body_of = np.tile(np.arange(len(found)), 2)
-  label_N = np.full(len(pc1), len(found))  # unsupported: any motion
-  for h, (_, inl) in enumerate(found):  # at first, the body whose hypothesis a point supported
-    label_N[sample[inl]] = h
+  # At first, the body whose hypothesis a point supported; unsupported points: any motion.
+  label_N = np.full(len(pc1), len(found))
+  label_N[sample] = np.where(support.label >= 0, support.label, len(found))
   start_cost = target.plane_distance(pc1 + flow, settings.truncate)[nbr_NxK].mean(1)
   for round_ in range(settings.em_rounds + 1):
     cost_NxH, choice_NxH = _costs(motions, body_of, pc1, flow, label_N, nbr_NxK, target,
