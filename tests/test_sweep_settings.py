@@ -12,6 +12,7 @@ import pytest
 
 from jaxflow import inference
 from jaxflow.data import synthetic_sweep as ss
+from jaxflow.errors import DataError
 from jaxflow.lidar import ego, settings as lidar_settings, sweep
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -177,5 +178,7 @@ def test_a_bad_value_is_refused_naming_its_field():
   with pytest.raises(ValueError, match="frame_rate_hz must be > 0"):
     lidar_settings.Sweep(frame_rate_hz=0.0)
   lidar_settings.Ground(min_sensor_height=-2.0)  # signed fields may be negative
+  with pytest.raises(DataError, match=r"pc1: raw_sweep_flow takes N x 3 points, got shape \(10, "):
+    sweep.raw_sweep_flow(None, np.zeros((10, 4)), np.zeros((10, 3)))
   with pytest.raises(Exception, match="jaxflow.lidar.settings.Sweep"):
     sweep.raw_sweep_flow(None, np.zeros((10, 3)), np.zeros((10, 3)), settings={"max_range": 5})

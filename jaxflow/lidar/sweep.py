@@ -106,6 +106,9 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
   max_range = settings.max_range if max_range is None else max_range
   order = frames.permutation(up, "z")  # a ConfigError for a wrong name
   back = np.argsort(order)
+  for cloud, name in ((pc1_Nx3, names[0]), (pc2_Mx3, names[1])):
+    if np.ndim(cloud) != 2 or np.shape(cloud)[1] != 3:
+      raise DataError(name, f"raw_sweep_flow takes N x 3 points, got shape {np.shape(cloud)}")
   pc1 = np.asarray(pc1_Nx3, np.float64)[:, order]
   pc2 = np.asarray(pc2_Mx3, np.float64)[:, order]
   notes = []
