@@ -5,9 +5,8 @@ the raw shared KITTI frame, and what each piece gains. Prints markdown tables, w
 
 Rows (three-way EPE of the AV2 challenge over each pair's eval mask: non-ground, |x|, |y| <= 50 m;
 FD / FS / BS averaged over the pairs that have such points, "mean" over the pairs' means):
-- zero flow; the ego-motion alone (jaxflow.lidar.ego; every point static); the default pipeline (ego
-+
-  moving objects); the same on 8192-point samples of each sweep (the network's input size);
+- zero flow; the ego-motion alone (jaxflow.lidar.ego; every point static); the default pipeline
+  (ego + moving objects); the same on 8192-point samples of each sweep (the network's input size);
 - with --nsfp-pairs: NSFP (published settings) on the same 8192-point samples, their true ground
   points left out (the field's protocol removes the ground first; ground points are not scored),
   on the first pairs only (30-90 s a pair on the 2-core CPU);
