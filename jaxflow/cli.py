@@ -262,7 +262,8 @@ def _parse_flags(argv: list[str], config_names=(),
       try:
         chosen = [registry.settings(method, flags.FLAGS.steps, flags.FLAGS.iters,
                                     flags.FLAGS.objective, method_fields(method, names))]
-        chosen += [registry.settings("lidar", fields=method_fields("lidar", names))] * lidar
+        if lidar:
+          chosen.append(registry.settings("lidar", fields=method_fields("lidar", names)))
       except ConfigError as e:
         fail(str(e))
       for name, settings in zip(names, chosen):

@@ -182,3 +182,17 @@ def test_a_bad_value_is_refused_naming_its_field():
     sweep.raw_sweep_flow(None, np.zeros((10, 4)), np.zeros((10, 3)))
   with pytest.raises(Exception, match="jaxflow.lidar.settings.Sweep"):
     sweep.raw_sweep_flow(None, np.zeros((10, 3)), np.zeros((10, 3)), settings={"max_range": 5})
+
+
+def test_evaluate_takes_the_lidar_methods_fields():
+  """evaluate.py --method lidar --method.lidar.FIELD=V (README): the field set, as --print_config
+  lists it; a lidar field with another method is refused."""
+  env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+  run = lambda *args: subprocess.run([sys.executable, "evaluate.py", *args], cwd=ROOT, env=env,
+                                     capture_output=True, text=True, timeout=300)
+  given = run("--method", "lidar", "--method.lidar.objects.person_size=0.9", "--print_config")
+  assert given.returncode == 0, given.stderr[-2000:]
+  assert "method.lidar.objects.person_size = 0.9  # " in given.stdout
+  assert "method.lidar.objects.cell = 0.3  # " in given.stdout
+  other = run("--method", "network", "--method.lidar.max_range=20", "--print_config")
+  assert other.returncode == 2 and "the method is network" in other.stderr

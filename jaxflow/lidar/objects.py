@@ -178,7 +178,7 @@ def _person_shift(scene, pts_Kx3):
   for _ in range(s.person_rounds):
     d = np.linalg.norm(above2[:, :2] - (centre[:2] + shift[:2]), axis=1)
     near = (d < s.person_radius) & (np.abs(above2[:, 2] - centre[2]) < s.person_top[1] / 2)
-    if near.sum() < max(5, len(pts_Kx3) // 3):
+    if near.sum() < max(s.person_least_matches, len(pts_Kx3) * s.person_matched_share):
       return None
     shift[:2] = above2[near, :2].mean(0) - centre[:2]
   if np.linalg.norm(shift) < s.person_min_shift:
@@ -196,6 +196,13 @@ def _is_candidate(idx, unexplained_N, height_N, pc1_Nx3, s) -> bool:
               or (height_N[idx] > s.object_top).mean() > s.max_high)
 
 
+def _truncation(pts_Kx3, queries_Qx3, s) -> float:
+  """An object's cost truncation (m): `spacings` of its median point spacing (each query's
+  nearest other point of the object), within truncate .. max_truncate."""
+  spacing = np.median(neighbours.Tree(pts_Kx3).knn(queries_Qx3, 2, distances=True)[0][:, 1])
+  return float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
+
+
 def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng):
   """(start name, motion, truncation) of an object's best motion, or None when standing still
   is not clearly beaten. `given_Kx3`: where a caller's flow takes the points (frame 1), or None.
@@ -207,8 +214,7 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng):
   starts = {"search": _search(scene.tree, sample, scene.search, s)}
   if given_Kx3 is not None:
     starts["network"] = rigid.kabsch(pts_Kx3, given_Kx3)
-  spacing = np.median(neighbours.Tree(pts_Kx3).knn(judge, 2, distances=True)[0][:, 1])
-  truncate = float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
+  truncate = _truncation(pts_Kx3, judge, s)
   still_costs = scene.costs(judge, truncate)
   best_name, best, best_costs = "still", rigid.Motion(np.eye(3), np.zeros(3)), still_costs
   for name, start in starts.items():
@@ -234,8 +240,7 @@ def _fit_person(scene, pts_Kx3):
   if shift is None:
     return None
   s = scene.settings
-  spacing = np.median(neighbours.Tree(pts_Kx3).knn(pts_Kx3, 2, distances=True)[0][:, 1])
-  truncate = float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
+  truncate = _truncation(pts_Kx3, pts_Kx3, s)
   still = scene.costs(pts_Kx3, truncate)
   if not _clearly_better(still, scene.costs(shift.apply(pts_Kx3), truncate), s):
     return None

@@ -149,6 +149,8 @@ class Objects:
   person_upright: float = 0.9  # m: a person's points span at least this height
   person_radius: float = 0.8  # m: pc2's points this near the moved centre (from above) are his
   person_rounds: int = 3  # centroid shifts, each from the last
+  person_least_matches: int = 5  # pc2's points there at least (fewer: no shift) ...
+  person_matched_share: float = 1 / 3  # ... and at least this share of the group's count
   person_min_shift: float = 0.05  # m: a smaller shift is standing still
 
   def __post_init__(self):

@@ -42,7 +42,7 @@ def settings(method: str, steps: int | None = None, iters: int | None = None,
   (the optimiser's cap), `iters` (optimise's starting flow's network iterations), `objective`
   (NSFP's) applied, then `fields`, {dotted field: value} at any depth (e.g. {"bodies.inlier":
   0.1}; the command line's --method.optimise.bodies.inlier=0.1; configfile.replace_settings)."""
-  get(method)
+  chosen_method = get(method)
   if objective is not None and method != "nsfp":
     raise ConfigError(f"--objective chooses NSFP's objective: it needs --method nsfp, not {method}")
   if steps is not None and steps < 0:
@@ -50,7 +50,7 @@ def settings(method: str, steps: int | None = None, iters: int | None = None,
   if fields and method == "network":
     raise ConfigError(f"--method network has no --method.network.* settings ({', '.join(fields)}); "
                       "its settings are the config's (--config.model.FIELD)")
-  chosen = REGISTRY[method].defaults(steps, iters, objective)
+  chosen = chosen_method.defaults(steps, iters, objective)
   return configfile.replace_settings(chosen, fields, f"method.{method}") if fields else chosen
 
 
