@@ -25,3 +25,14 @@ def test_seen_hidden_and_outside(up):
   assert view.state(asked).tolist() == list(ASKED.values())
   # Occlusion alone: the point beyond the range is behind the 10 m return too.
   assert view.hidden(asked).tolist() == [False, False, True, False, False, True]
+
+
+def test_a_sensor_away_from_the_frames_origin():
+  """A vehicle frame: the sensor 1.7 m above and 1.4 m behind the origin (y up, z forward). Seen
+  from the sensor the states are those above; seen from the origin the returns no longer lie
+  before the points they hide."""
+  sensor = np.array([0.0, 1.7, -1.4])
+  returns, asked = np.array(RETURNS) + sensor, np.array(list(ASKED)) + sensor
+  view = visibility.View(returns, "y", origin=sensor)
+  assert view.state(asked).tolist() == list(ASKED.values())
+  assert not visibility.View(returns, "y").hidden(asked)[2]

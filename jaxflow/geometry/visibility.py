@@ -18,11 +18,13 @@ def _axes(up: str) -> tuple[int, int, int]:
 
 
 class View:
-  """The returns `points_Mx3` of one sensor, binned by azimuth x elevation about `up`."""
+  """The returns `points_Mx3` of one sensor at `origin` (default the frame's), binned by azimuth x
+  elevation about `up`."""
 
   def __init__(self, points_Mx3, up: str = "z", azimuth_bins: int = 360,
-               elevation_bins: int = 180, hidden: float = 0.5):
+               elevation_bins: int = 180, hidden: float = 0.5, origin=None):
     self.axes, self.bins, self.hidden_by = _axes(up), (azimuth_bins, elevation_bins), hidden
+    self.origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
     points = np.asarray(points_Mx3, np.float64)
     key, r, azimuth, elevation = self._directions(points)
     self.nearest = np.full(azimuth_bins * elevation_bins, np.inf)
@@ -32,6 +34,7 @@ class View:
 
   def _directions(self, points_Kx3):
     a, b, up = self.axes
+    points_Kx3 = points_Kx3 - self.origin
     r = np.linalg.norm(points_Kx3, axis=1)
     azimuth = np.arctan2(points_Kx3[:, a], points_Kx3[:, b])
     elevation = np.arcsin(np.clip(points_Kx3[:, up] / np.maximum(r, 1e-9), -1, 1))

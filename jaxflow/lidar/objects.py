@@ -13,7 +13,11 @@ ground), and keeps the motion that fits pc2 best, standing still unless another 
 better (jaxflow.geometry.groups.beats); a kept motion is refitted on all the object's points.
 A walking person moves less a frame than `unexplained`: a group shaped as a person (narrow,
 upright, a person's height) first gets the shift of the centroid of pc2's points around it,
-kept when it beats standing still by the same rule. Points no object claims keep the ego-motion.
+kept when it beats standing still by the same rule. A group kept still may join a mover to what
+stands beside it (a car passing parked cars): the connected cells of its unexplained points are
+fitted in turn, each kept only where it leaves a place pc2 shows empty for one pc1 showed empty.
+What pc2 saw is judged from its sensor's place (`sensor2`). Points no object claims keep the
+ego-motion.
 All in z-up coordinates, frame 1. The names are the fields of `settings`,
 jaxflow.lidar.settings.Objects (default: its values).
 """
@@ -142,6 +146,7 @@ class _Scene:
   """What every object of a pair is fitted and judged against: pc2 brought into frame 1."""
   target: ego.Target  # pc2 seen from above (the ICP's point-to-line rows)
   tree: neighbours.Tree  # pc2's points above the ground (3-D costs)
+  new: np.ndarray  # bool, each of those points: pc1 does not explain it (from above)
   visibility: views.View  # what pc2's sensor saw (a placement it could not see: no evidence)
   ego_motion: rigid.Motion
   search: float  # m: an object's translation search, +- this (a frame's worth of search_per_s)
@@ -194,6 +199,39 @@ def _is_candidate(idx, unexplained_N, height_N, pc1_Nx3, s) -> bool:
     return False
   return not (np.ptp(pc1_Nx3[idx, :2], axis=0).max() > s.max_size
               or (height_N[idx] > s.object_top).mean() > s.max_high)
+
+
+def _novelty(scene, pts_Kx3, motion, truncate) -> float:
+  """Share of pc2's points that a moved part lands on (within `truncate`) which pc1 does not
+  explain where they are: a mover lands where it was not; a piece of still structure slid onto
+  more of that structure lands on what pc1 saw there too."""
+  d, j = scene.tree.nearest(motion.apply(pts_Kx3), truncate)
+  j = np.unique(j[np.isfinite(d)])
+  if not len(j):
+    return 0.0
+  return float(scene.new[j].mean())
+
+
+def _new_place(scene, pts_Kx3, fit) -> bool:
+  """Whether a part's motion takes it from a place pc2 shows empty (mean cost at least `vacated`)
+  to one pc1 showed empty (`_novelty`), and the part is object-sized (`part_size` wide)."""
+  s = scene.settings
+  _, motion, truncate = fit
+  return bool(_mean(scene.costs(pts_Kx3, truncate), s.min_seen) >= s.vacated
+              and np.ptp(pts_Kx3[:, :2], axis=0).max() >= s.part_size
+              and _novelty(scene, pts_Kx3, motion, truncate) >= s.novelty)
+
+
+def _unexplained_parts(idx, unexplained_N, pc1_Nx3, s):
+  """Indices of each group of a group's unexplained points (connected cells, no bridging, with
+  every point of the group in their cells) of `min_points` or more, but at most `part_share` of
+  the group (a larger one is the group again)."""
+  seeds = unexplained_N[idx]
+  if seeds.sum() < s.min_points:
+    return []
+  parts = groups.cell_components(pc1_Nx3[idx], seeds, s.cell, bridge=False)
+  return [idx[mine] for _, mine in parts.members()
+          if s.min_points <= len(mine) <= s.part_share * len(idx)]
 
 
 def _truncation(pts_Kx3, queries_Qx3, s) -> float:
@@ -269,13 +307,14 @@ def _low_ground_under(pts_Kx3, pc1_Nx3, ground1_N, height_N, s) -> np.ndarray:
 
 def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion, surface=None,
                 start_flow_Nx3=None, seed: int = 0, settings=None, ego_settings=None,
-                frame_rate_hz: float | None = None):
+                frame_rate_hz: float | None = None, sensor2=None):
   """(flow N x 3 of every pc1 point, Found): the ego-motion flow, and the rigid motion of each
   object the ego-motion does not explain (module docstring). `surface`: the ground in frame 1
   (jaxflow.lidar.ground.Surface; heights and an object's vertical motion); `start_flow_Nx3`: a flow
   to start each object from (e.g. the network's). `settings`: the objects block; `ego_settings`:
   the ego block (pc2's bird's-eye ego.Target); `frame_rate_hz` divides the per-second limits
-  (default: the config's)."""
+  (default: the config's); `sensor2`: where pc2's sensor is in its frame (jaxflow.lidar.sensor;
+  default the origin), whence what pc2 saw and hid is judged."""
   s = DEFAULTS.objects if settings is None else settings
   rate = DEFAULTS.frame_rate_hz if frame_rate_hz is None else frame_rate_hz
   pc1 = np.asarray(pc1_Nx3, np.float64)
@@ -291,24 +330,25 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     ground1.any()) else pc1[:, 2] - pc1[:, 2].min()
   found = object_groups(pc1, np.where(ground1, -1.0, height), settings=s).without(ground1)
   unexplained = _per_point(target, pc1) > s.unexplained
-  scene = _Scene(target, neighbours.Tree(above2),
-                 views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden),
+  new = _per_point(ego.Target(pc1, ground1, ego_settings), above2) > s.unexplained
+  scene = _Scene(target, neighbours.Tree(above2), new,
+                 views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden, sensor2),
                  ego_motion, s.search_per_s / rate, s.max_yaw_deg_per_s / rate, s)
   given = None if start_flow_Nx3 is None else back.apply(
     pc1 + np.asarray(start_flow_Nx3, np.float64))
   rng = np.random.default_rng(seed)
-  moved, candidates = [], 0
-  for _, idx in found.members():
-    pts = pc1[idx]
+  moved, candidates, still = [], 0, []
+
+  def fit_group(idx, pts):
     fit = _fit_person(scene, pts) if _is_person(idx, pc1, height, s) else None
     if fit is None:
       if not _is_candidate(idx, unexplained, height, pc1, s):
-        continue
+        return None, False
       usable = given is not None and np.isfinite(given[idx]).all()
       fit = _fit_object(scene, pts, given[idx] if usable else None, rng)
-    candidates += 1
-    if fit is None:
-      continue
+    return fit, True
+
+  def apply(idx, pts, fit):
     name, best, truncate = fit
     if surface is not None:
       best = _on_the_ground(best, pts, surface)
@@ -320,4 +360,20 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
     if surface is not None:
       low = _low_ground_under(pts, pc1, ground1, height, s)
       flow[low] = best.then(ego_motion).flow(pc1[low])
+
+  for _, idx in found.members():
+    fit, tried = fit_group(idx, pc1[idx])
+    candidates += tried
+    if fit is None:
+      still.append(idx)
+    else:
+      apply(idx, pc1[idx], fit)
+  # A group kept still may join a mover to what stands beside it (a car passing parked cars): its
+  # unexplained points' own groups are fitted in turn.
+  for idx in still:
+    for part in _unexplained_parts(idx, unexplained, pc1, s):
+      fit, tried = fit_group(part, pc1[part])
+      candidates += tried
+      if fit is not None and _new_place(scene, pc1[part], fit):
+        apply(part, pc1[part], fit)
   return flow.astype(np.float32), Found(found.count, candidates, moved)

@@ -16,9 +16,10 @@ import dataclasses
 import math
 
 # Fields that may be negative: a height below the origin, the grid searches' lower ends.
-_SIGNED = {"min_sensor_height", "search_yaw_deg_per_s", "search_x_per_s", "search_y_per_s"}
+_SIGNED = {"min_sensor_height", "search_yaw_deg_per_s", "search_x_per_s", "search_y_per_s",
+           "search_x", "search_y", "search_z"}
 # Tuples whose length is the user's: the passes and windows of a coarse-to-fine search.
-_VARIABLE_LENGTH = {"scales", "surface_windows", "icp_scales"}
+_VARIABLE_LENGTH = {"scales", "surface_windows", "icp_scales", "refine_steps"}
 
 
 def _check(block):
@@ -104,12 +105,39 @@ class Ego:
 
 
 @dataclasses.dataclass(frozen=True)
+class Sensor:
+  """Where pc2's sensor is in its frame (jaxflow.lidar.sensor): whence its rings look sharpest."""
+  find: bool = True  # False: at the frame's origin (a sensor's own frame, KITTI's)
+  fine_bin_deg: float = 0.03  # deg: the elevation histogram's fine bins
+  coarse: int = 8  # fine bins in a coarse one
+  min_range: float = 3.0  # m: nearer points (the vehicle's own body) left out
+  least_points: int = 500  # fewer points than this: at the origin
+  sample: int = 10000  # points the search looks at (a seeded sample)
+  search_x: tuple = (-3.0, 3.0, 0.5)  # m: the grid's forward positions
+  search_z: tuple = (-1.0, 3.0, 0.25)  # m: the grid's heights
+  search_y: tuple = (-1.0, 1.0, 0.1)  # m: then sideways, at the grid's best
+  refine_steps: tuple = (0.1, 0.02)  # m: the axis-by-axis refinement's steps
+  # Smear saved over the origin below which the origin is kept: the best of the grid's
+  # positions saves up to ~0.02 by chance on a cloud without rings, a sweep's sensor 0.2-2.
+  min_gain: float = 0.05
+
+  def __post_init__(self):
+    _check(self)
+
+
+@dataclasses.dataclass(frozen=True)
 class Objects:
   """Moving objects (jaxflow.lidar.objects): groups from above, their motions, the judge."""
   cell: float = 0.3  # m: objects are connected cells from above (a cell's gap bridged)
   part_cell: float = 0.15  # m: a moved object's parts, connected cells (no bridging)
   object_top: float = 2.6  # m above the ground: higher points join no object
   min_points: int = 12  # points of an object (and of a part kept still)
+  # A group kept still may join a mover to what stands beside it: its unexplained points' own
+  # groups (parts, at most `part_share` of it) are fitted, and a part's motion is kept when
+  part_share: float = 0.9
+  novelty: float = 0.7  # ... this share of pc2's points it lands on were not there in pc1,
+  vacated: float = 0.6  # ... its mean cost standing still is at least this,
+  part_size: float = 1.0  # m: ... and it is this wide
   max_high: float = 0.25  # share above object_top beyond which a group is structure
   max_size: float = 14.0  # m: a larger group is structure (a facade), never moved
   unexplained: float = 0.15  # m from ego-compensated pc2 (from above): unexplained
@@ -166,6 +194,7 @@ class Sweep:
   static_threshold: float = 0.1  # m: within this of a rigid fit of a method's flow: static
   ground: Ground = Ground()
   ego: Ego = Ego()
+  sensor: Sensor = Sensor()
   objects: Objects = Objects()
 
   def __post_init__(self):

@@ -13,8 +13,9 @@ sensor's own motion is most of the flow:
    the one that explains the static world best kept (jaxflow.lidar.ego);
 3. the ground again, fitted to both sweeps in pc1's frame, so the two agree;
 4. moving objects: groups of points the ego-motion does not explain, one rigid motion each
-   (jaxflow.lidar.objects); every other point, ground and far points included, gets the
-   ego-motion flow.
+   (jaxflow.lidar.objects), judged on what pc2's sensor saw from where it was (found from its
+   rings, jaxflow.lidar.sensor: a vehicle frame's origin lies below it); every other point,
+   ground and far points included, gets the ego-motion flow.
 `flow_fn(pc1_kept, pc2_kept)` (e.g. the network on the non-ground points within `max_range`) is
 called only with `use_network=True`: its flow is then one more start for the ego-motion and for
 every object (benchmarks/METHODS.md measures what it adds). Any up axis: the work is done z up.
@@ -28,7 +29,7 @@ import numpy as np
 
 from jaxflow.errors import ConfigError, DataError
 from jaxflow.geometry import frames, rigid
-from jaxflow.lidar import ego, ground, objects
+from jaxflow.lidar import ego, ground, objects, sensor
 from jaxflow.lidar.settings import DEFAULTS, Sweep
 
 
@@ -47,6 +48,7 @@ class SweepInfo:
   notes: tuple = ()  # fits that failed or look wrong
   ground_masks: tuple = ()  # (pc1 N, pc2 M) bool: the points taken as ground (the pictures)
   settings: Sweep = DEFAULTS  # the settings used
+  sensor2: tuple = (0.0, 0.0, 0.0)  # where pc2's sensor was found in its frame (input's axes)
 
   def note(self) -> str:
     moved = sum(m[0] for m in self.objects.moved)
@@ -66,11 +68,18 @@ class SweepInfo:
             f"{100 * self.ego.inlier_fraction:.0f}% of the points within "
             f"{100 * settings.ego.inlier:.0f} cm of PC2's surfaces); "
             f"{len(self.objects.moved)} of {self.objects.candidates} candidate objects move "
-            f"({moved} points in them); the other "
+            f"({moved} points in them{self._sensor_text()}); the other "
             f"{self.kept[0] + self.far[0] + self.ground[0] - moved} PC1 points get the ego-motion "
             "flow"
             + ("; the method's flow was a start" if self.used_network else "")
             + "".join(f"\nnote: {n}" for n in self.notes))
+
+
+  def _sensor_text(self) -> str:
+    if not any(self.sensor2):
+      return ""
+    return ", judged from PC2's sensor found at (" + ", ".join(f"{v:.2f}" for v in self.sensor2) + (
+      ") m")
 
 
 def settings_of(settings=None) -> Sweep:
@@ -154,21 +163,24 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
     surface = ground.fit_surface(both, "z", None, names[0], settings=settings.ground)
     g1 = surface.ground(pc1)
     g2 = surface.ground(inverse.apply(pc2))
+  sensor2 = np.zeros(3)
   if moving_objects:
+    # Not the ground: seen from the road's own height the whole road lies at one elevation.
+    sensor2, _ = sensor.sensor_position(pc2[~g2], settings.sensor, seed)
     flow, found = objects.object_flow(pc1, pc2, g1, g2, fit.motion, surface, start_flow, seed,
-                                      settings.objects, settings.ego, rate)
+                                      settings.objects, settings.ego, rate, sensor2)
   else:
     flow, found = fit.motion.flow(pc1), objects.Found(0, 0, [])
   if not np.isfinite(flow).all():  # never reached by construction; never returned either
     raise FloatingPointError("raw_sweep_flow: a non-finite flow")
   motion = fit.motion.in_frame(frames.rotation("z", up))  # back in the input's frame
   info = _info(surf1, g1, g2, near1, near2, motion, fit, found, max_range,
-               start_flow is not None, notes, settings)
+               start_flow is not None, notes, settings, sensor2[back])
   return np.ascontiguousarray(flow[:, back], np.float32), info
 
 
 def _info(surf1, g1, g2, near1, near2, motion, fit, found, max_range, used_network, notes,
-          settings):
+          settings, sensor2=np.zeros(3)):
   """The SweepInfo of a pair: `motion` in the input's frame, `fit` in the z-up frame."""
   return SweepInfo(
     sensor_height=None if surf1 is None else surf1.sensor_height,
@@ -176,7 +188,7 @@ def _info(surf1, g1, g2, near1, near2, motion, fit, found, max_range, used_netwo
     far=(int((~g1 & ~near1).sum()), int((~g2 & ~near2).sum())),
     kept=(int((~g1 & near1).sum()), int((~g2 & near2).sum())), motion=motion, ego=fit,
     objects=found, max_range=max_range, used_network=used_network, notes=tuple(notes),
-    ground_masks=(g1, g2), settings=settings)
+    ground_masks=(g1, g2), settings=settings, sensor2=tuple(map(float, sensor2)))
 
 
 def azimuth_coverage(points_Nx3) -> float:
