@@ -5,7 +5,8 @@ side: the ground, the ego-motion, the flow. Prints markdown tables, writes JSON.
 
 Samples: the real sweeps of ../shared/data/real_sweeps by name (the labelled Argoverse 2 pair with
 pc1 moved by a known ego-motion, 2 deg yaw and (1.0, 0.1, 0.02) m, as ../shared/tools/
-real_sweeps_check.py does; the unlabelled AV2 pair; KITTI's Velodyne scan split into two disjoint
+real_sweeps_check.py does, and the same pair backwards, its labels derived from the forward
+ones (`backwards`); the unlabelled AV2 pair; KITTI's Velodyne scan split into two disjoint
 halves, the second moved by the same motion) and `--pairs` pairs of the generator's split in three
 forms: as generated (a roof sensor at the origin), a dense city seen from Argoverse 2's ego frame
 (origin 0.33 m above the road, two stacked 32-beam sensors), and with the ground removed.
@@ -39,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.evaluation import metrics
-from jaxflow.geometry import rigid
+from jaxflow.geometry import groups, rigid
 from jaxflow.lidar import ego, ground, sweep
 
 REAL = pathlib.Path(__file__).resolve().parents[2] / "shared/data/real_sweeps"
@@ -48,6 +49,31 @@ MOTION = rigid.Motion(Rotation.from_euler("z", 2.0, degrees=True).as_matrix(),
 FORMS = {"generated": ss.FORMS["generated"],
          "city (dense, AV2 ego frame, stacked)": ss.FORMS["city"],
          "ground removed": ss.FORMS["noground"]}
+
+
+def backwards(raw1, pc2, truth, valid, category):
+  """The labelled pair taken backwards (pc2 -> pc1), its labels derived from the forward ones:
+  each forward mover (0.5 m cells of its dynamic points, 20 or more) moves rigidly (a Kabsch fit
+  of its labelled flow), and pc2's points within 0.3 m of its moved points get that motion's
+  inverse; the rest the ego-motion's inverse. A pc2 point's class: that of pc1's nearest point
+  moved by its labelled flow, within 0.3 m (background beyond)."""
+  dynamic = valid & (np.linalg.norm(truth - MOTION.flow(raw1), axis=1) >= 0.05)
+  inverse = MOTION.inverse()
+  flow = inverse.flow(pc2)
+  tree = cKDTree(pc2)
+  for _, idx in groups.cell_components(raw1, dynamic, 0.5, bridge=True).members():
+    idx = idx[dynamic[idx]]
+    if len(idx) >= 20:
+      mover = rigid.kabsch(raw1[idx], raw1[idx] + truth[idx])
+      near = np.unique(np.concatenate(tree.query_ball_point(mover.apply(raw1[idx]), 0.3)))
+      near = near.astype(np.int64)
+      flow[near] = mover.inverse().flow(pc2[near])
+  d, j = cKDTree((raw1 + truth)[valid]).query(pc2, distance_upper_bound=0.3)
+  seen = np.isfinite(d)
+  foreground = np.zeros(len(pc2), bool)
+  foreground[seen] = category[valid][j[seen]] >= 0
+  return dict(motion=inverse, flow=flow, ego_flow=inverse.flow(pc2), foreground=foreground,
+              mask=np.all(np.abs(pc2[:, :2]) <= 50, axis=1))
 
 
 def samples(pairs: int, split: str):
@@ -61,6 +87,9 @@ def samples(pairs: int, split: str):
     yield "AV2 labelled (moved)", raw1, z["pc2"].astype(np.float64), dict(
       motion=MOTION, flow=truth, ego_flow=MOTION.flow(raw1), foreground=z["category"] >= 0,
       mask=box)
+    pc2 = z["pc2"].astype(np.float64)
+    yield "AV2 labelled, backwards", pc2, raw1, backwards(raw1, pc2, truth, z["flow_valid"],
+                                                          z["category"])
     yield "AV2 unlabelled", *(np.load(REAL / f"av2_pair_unlabelled_pc{i}.npy")[:, :3].astype(
       np.float64) for i in (1, 2)), {}
     k = np.fromfile(REAL / "kitti_velodyne_000002.bin", np.float32).reshape(-1, 4)[:, :3]

@@ -124,3 +124,31 @@ def test_the_frame_origin_the_city_and_the_sensors_vary_as_real_sweeps_do():
   one = ss.sweep_pair("val", 2, ss.Options(beams=32, scale=0.3))
   two = ss.sweep_pair("val", 2, ss.Options(beams=32, stacked=True, scale=0.3))
   assert rings(two) > 1.5 * rings(one) and abs(len(two.pc1) / len(one.pc1) - 1) < 0.2
+
+
+def test_a_pair_taken_backwards_undoes_the_forward_motions():
+  """reverse=1: pc1 is the later sweep and its flow goes to the earlier one, so each object's
+  backward motion (a rigid fit of its flow) composed with its forward one is the identity, and the
+  forward ego-motion takes the backward static flow's ends home."""
+  forward = ss.sweep_pair("val", 0, ss.FORMS["city"])
+  ds = open_dataset("synthetic_sweep:1,form=city,reverse=1", "val")
+  backward = ss.sweep_pair("val", 0, ss.Options(**{**vars(ss.FORMS["city"]), "reverse": True}))
+  np.testing.assert_array_equal(ds[0].pc1, backward.pc1)
+  assert ds.name == "synthetic_sweep:1,form=city,reverse=1" and "backwards" in ds.describe()
+  np.testing.assert_array_equal(backward.pc1, forward.pc2)
+  np.testing.assert_array_equal(backward.pc2, forward.pc1)
+  home = (backward.pc1 + backward.ego_flow) @ forward.ego_rotation.T + forward.ego_translation
+  np.testing.assert_allclose(home, backward.pc1, atol=1e-4)
+  moving = 0
+  for k in np.unique(forward.instance[forward.instance > 0]):
+    there, back = forward.instance == k, backward.instance == k
+    if there.sum() < 10 or back.sum() < 10:
+      continue
+    f = rigid.kabsch(forward.pc1[there].astype(float), (forward.pc1 + forward.flow)[there])
+    b = rigid.kabsch(backward.pc1[back].astype(float), (backward.pc1 + backward.flow)[back])
+    x = backward.pc1[back].astype(float)
+    np.testing.assert_allclose(f.apply(b.apply(x)), x, atol=1e-3)
+    moving += np.linalg.norm(backward.flow[back] - backward.ego_flow[back], axis=1).mean() > 0.05
+  assert moving >= 3
+  with pytest.raises(DataError, match="reverse=0|1"):
+    open_dataset("synthetic_sweep:1,reverse=yes", "val")

@@ -3,6 +3,7 @@
     sweep = sweep_pair("val", 3)          # a SweepPair: pc1, pc2, flow, ego flow, labels, ground
     ds = open_dataset("synthetic_sweep:20", "test")   # as jaxflow Pairs (evaluate.py)
     ds = open_dataset("synthetic_sweep:8,form=city", "val")   # a dense city (FORMS)
+    ds = open_dataset("synthetic_sweep:8,reverse=1", "val")   # each pair backwards
 
 Unlike `synthetic_lidar` (the KITTI loader's cut: no ground, 35 m, the camera's field of view, y up)
 these pairs are what a raw sweep is: z up (x forward, y left), the full azimuth, 32, 64 or 128
@@ -92,6 +93,7 @@ class Options:
   dense: bool = False  # a dense city: a narrow street walled by facades (the road ~20-30% of
   # the points within 20 m instead of ~55-70%)
   stacked: bool = False  # two 32-beam sensors stacked (Argoverse 2): two ring patterns a sweep
+  reverse: bool = False  # the pair taken backwards: pc1 the later sweep, its flow to the earlier
 
 
 # z up (x forward, y left) <- the caster's frame (x, y up, z forward): a cyclic permutation.
@@ -274,24 +276,27 @@ def sweep_pair(split: str, index: int, options: Options = Options()) -> SweepPai
   beams = options.beams or int(rng.choice(BEAMS))
   p1, prim1, noise1 = _cast(scene, 0, rng, options, beams)
   p2, prim2, noise2 = _cast(scene, 1, rng, options, beams)
-  p1 = p1 + noise1  # the measured point moves with its object
-  moved = syn.warp(scene, p1, prim1)  # the same points in frame 2
+  p1, p2 = p1 + noise1, p2 + noise2  # the measured point moves with its object
   static = dataclasses.replace(scene, obj_P=np.zeros_like(scene.obj_P))
-  ego = syn.warp(static, p1, prim1)
+  a, b = scene.a_Kx3x3[0], scene.b_Kx3[0]  # the static world's (the sensor's) motion
+  if options.reverse:  # frame 2 -> frame 1: each object's inverse motion
+    p1, p2, prim1, prim2 = p2, p1, prim2, prim1
+    a, b = a.T, -a.T @ b
+  moved = syn.warp(scene, p1, prim1, inverse=options.reverse)  # the same points in the other frame
+  ego = syn.warp(static, p1, prim1, inverse=options.reverse)
   # The frame's origin below the sensor (a vehicle frame): every point higher by `lift`, the
   # frame's motion x -> R x + t becomes x -> R x + t + lift - R lift.
   lift = np.zeros(3)
   if options.origin_height is not None:
     lift[2] = sensor_height - options.origin_height
   z_up = lambda a_3xN: np.ascontiguousarray((_TO_Z_UP @ a_3xN).T, np.float32)
-  a, b = scene.a_Kx3x3[0], scene.b_Kx3[0]  # the static world's (the sensor's) motion
   rotation = _TO_Z_UP @ a @ _TO_Z_UP.T
   return SweepPair(
-    pc1=z_up(p1) + lift.astype(np.float32), pc2=z_up(p2 + noise2) + lift.astype(np.float32),
+    pc1=z_up(p1) + lift.astype(np.float32), pc2=z_up(p2) + lift.astype(np.float32),
     flow=z_up(moved - p1), ego_flow=z_up(ego - p1),
     category=cat_P[prim1], instance=inst_P[prim1], ground=ground_P[prim1], ground2=ground_P[prim2],
     ego_rotation=rotation, ego_translation=_TO_Z_UP @ b + lift - rotation @ lift,
-    name=f"synthetic_sweep/{split}/{index}")
+    name=f"synthetic_sweep/{split}/{index}" + ("/reverse" if options.reverse else ""))
 
 
 # The forms a spec may ask for ("synthetic_sweep:COUNT,form=NAME"): what the benchmarks score.
@@ -303,23 +308,26 @@ FORMS = {"generated": Options(),
 class SyntheticSweep(Dataset):
   """`count` raw sweep pairs of one split and form, generated on demand."""
 
-  def __init__(self, split: str, count: int, form: str = "generated"):
-    self.split, self.count, self.form = split, count, form
-    self.name = f"synthetic_sweep:{count}" + (f",form={form}" if form != "generated" else "")
+  def __init__(self, split: str, count: int, form: str = "generated", reverse: bool = False):
+    self.split, self.count, self.form, self.reverse = split, count, form, reverse
+    self.name = (f"synthetic_sweep:{count}" + (f",form={form}" if form != "generated" else "")
+                 + (",reverse=1" if reverse else ""))
 
   def __len__(self):
     return self.count
 
   def load(self, i):
-    return sweep_pair(self.split, i, FORMS[self.form]).to_pair()
+    options = dataclasses.replace(FORMS[self.form], reverse=self.reverse)
+    return sweep_pair(self.split, i, options).to_pair()
 
   def describe(self):
     return (f"{self.name} split={self.split}: {self.count} raw 360-degree sweep pairs "
-            f"({self.form}), z up")
+            f"({self.form}{', backwards' if self.reverse else ''}), z up")
 
 
 def open_sweeps(arg: str, split: str | None) -> SyntheticSweep:
-  """"COUNT[,form=generated|city|noground]" (module docstring; FORMS)."""
+  """"COUNT[,form=generated|city|noground][,reverse=1]" (module docstring; FORMS; reverse: each
+  pair taken backwards)."""
   spec = f"synthetic_sweep:{arg}"
   count, *options = arg.split(",")
   split = split or "val"
@@ -327,13 +335,17 @@ def open_sweeps(arg: str, split: str | None) -> SyntheticSweep:
     raise DataError(spec, f"unknown split {split!r}; synthetic_sweep's splits are {SPLITS}")
   if count and (not count.isdigit() or int(count) < 1):
     raise DataError(spec, f"COUNT must be a positive integer, got {count!r}")
-  form = "generated"
+  form, reverse = "generated", False
   for option in options:
     key, eq, value = option.partition("=")
-    if key != "form" or not eq or value not in FORMS:
-      raise DataError(spec, f"bad option {option!r}; expected form=one of {', '.join(FORMS)}")
-    form = value
-  return SyntheticSweep(split, int(count) if count else DEFAULT_COUNT[split], form)
+    if key == "reverse" and value in ("0", "1"):
+      reverse = value == "1"
+    elif key != "form" or not eq or value not in FORMS:
+      raise DataError(spec, f"bad option {option!r}; expected form=one of {', '.join(FORMS)} or "
+                      "reverse=0|1")
+    else:
+      form = value
+  return SyntheticSweep(split, int(count) if count else DEFAULT_COUNT[split], form, reverse)
 
 
 register("synthetic_sweep", open_sweeps)
