@@ -158,6 +158,25 @@ def test_a_car_passing_a_row_of_parked_cars_gets_its_motion():
   assert moving.mean() > 0.5, (moving.mean(), found.moved)
 
 
+def test_a_thing_pc2_lost_is_not_slid_onto_its_twin():
+  """Two like boxes 3 m apart; pc2 sees only the second (the first dropped out, its place empty).
+  Sliding the first 3 m onto the second fits pc2 perfectly, but it lands on what pc1 saw there
+  too: farther than its own width, a mover would land where nothing was. Both stand still."""
+  size = np.array([1.0, 1.0, 1.0])
+  faces = ["-x", "-y", "top"]
+  wall = lambda r: np.c_[np.full(3000, 30.0), r.uniform(-15, 15, 3000), r.uniform(0, 5, 3000)]
+  pc1 = np.concatenate([_visible_faces(np.random.default_rng(1), (10.0, 3.0), size, 300, faces),
+                        _visible_faces(np.random.default_rng(2), (10.0, 6.0), size, 300, faces),
+                        wall(np.random.default_rng(3))])
+  pc2 = np.concatenate([_visible_faces(np.random.default_rng(4), (10.0, 6.0), size, 300, faces),
+                        wall(np.random.default_rng(5))])
+  still = rigid.Motion(np.eye(3), np.zeros(3))
+  flow, found = objects.object_flow(pc1, pc2, np.zeros(len(pc1), bool), np.zeros(len(pc2), bool),
+                                    still)
+  assert found.candidates >= 1 and found.moved == []
+  np.testing.assert_array_equal(flow, 0.0)
+
+
 def person(rng, centre, n=80):
   """n points on the side of a person (a 0.5 x 0.3 m ellipse, 1.75 m tall) that faces the sensor
   at the origin, standing on z = 0 (independent samples a call)."""

@@ -13,11 +13,11 @@ ground), and keeps the motion that fits pc2 best, standing still unless another 
 better (jaxflow.geometry.groups.beats); a kept motion is refitted on all the object's points.
 A walking person moves less a frame than `unexplained`: a group shaped as a person (narrow,
 upright, a person's height) first gets the shift of the centroid of pc2's points around it,
-kept when it beats standing still by the same rule. A group kept still may join a mover to what
-stands beside it (a car passing parked cars): the connected cells of its unexplained points are
-fitted in turn, each kept only where it leaves a place pc2 shows empty for one pc1 showed empty.
-What pc2 saw is judged from its sensor's place (`sensor2`). Points no object claims keep the
-ego-motion.
+kept when it beats standing still by the same rule. An object moved farther than its own width
+must land where pc1 saw nothing. A group kept still may join a mover to what stands beside it (a
+car passing parked cars): the connected cells of its unexplained points are fitted in turn, each
+kept only where it leaves a place pc2 shows empty for one pc1 showed empty. What pc2 saw is
+judged from its sensor's place (`sensor2`). Points no object claims keep the ego-motion.
 All in z-up coordinates, frame 1. The names are the fields of `settings`,
 jaxflow.lidar.settings.Objects (default: its values).
 """
@@ -222,6 +222,18 @@ def _new_place(scene, pts_Kx3, fit) -> bool:
               and _novelty(scene, pts_Kx3, motion, truncate) >= s.novelty)
 
 
+def _onto_what_stood(scene, pts_Kx3, fit) -> bool:
+  """Whether a motion takes an object farther than its own width onto what pc1 saw there too
+  (under `novelty` of the pc2 points it lands on new): a thing slid onto its neighbours. A mover
+  that far has left its own place, so where it lands pc1 saw nothing."""
+  _, motion, truncate = fit
+  centre = pts_Kx3.mean(0)
+  shift = np.linalg.norm(motion.apply(centre[None])[0, :2] - centre[:2])
+  extent = np.ptp(pts_Kx3[:, :2], axis=0).max()
+  novelty = _novelty(scene, pts_Kx3, motion, truncate)
+  return bool(shift > extent and novelty < scene.settings.novelty)
+
+
 def _unexplained_parts(idx, unexplained_N, pc1_Nx3, s):
   """Indices of each group of a group's unexplained points (connected cells, no bridging, with
   every point of the group in their cells) of `min_points` or more, but at most `part_share` of
@@ -364,6 +376,8 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   for _, idx in found.members():
     fit, tried = fit_group(idx, pc1[idx])
     candidates += tried
+    if fit is not None and _onto_what_stood(scene, pc1[idx], fit):
+      fit = None
     if fit is None:
       still.append(idx)
     else:

@@ -135,7 +135,9 @@ class Objects:
   # A group kept still may join a mover to what stands beside it: its unexplained points' own
   # groups (parts, at most `part_share` of it) are fitted, and a part's motion is kept when
   part_share: float = 0.9
-  novelty: float = 0.7  # ... this share of pc2's points it lands on were not there in pc1,
+  # ... this share of pc2's points it lands on were not there in pc1 (also asked of any object
+  # moved farther than its own width),
+  novelty: float = 0.7
   vacated: float = 0.6  # ... its mean cost standing still is at least this,
   part_size: float = 1.0  # m: ... and it is this wide
   max_high: float = 0.25  # share above object_top beyond which a group is structure
