@@ -238,7 +238,7 @@ def build_scene(rng, opt: Options = Options()):
       heading = 0.0 if lane < 0 else math.pi
       z = rng.uniform(-60, -40)
       while z < 60:
-        if abs(z) > 6 or lane > 0:  # the ego car drives at x = 0
+        if abs(z) > 6 or lane > 2.2:  # the ego car drives at x = 0 (2 m wide): no car on it
           v = 0.0 if rng.random() < 0.25 else rng.uniform(0.3, 3.0)
           turn = np.deg2rad(rng.uniform(-2, 2)) * (v > 0)
           d = np.array([math.sin(heading + turn / 2), 0, math.cos(heading + turn / 2)])
