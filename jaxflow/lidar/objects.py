@@ -202,9 +202,9 @@ def _is_candidate(idx, unexplained_N, height_N, pc1_Nx3, s) -> bool:
 
 
 def _novelty(scene, pts_Kx3, motion, truncate) -> float:
-  """Share of pc2's points that a moved part lands on (within `truncate`) which pc1 does not
-  explain where they are: a mover lands where it was not; a piece of still structure slid onto
-  more of that structure lands on what pc1 saw there too."""
+  """Share of pc2's points that an object moved by `motion` lands on (within `truncate`) which
+  pc1 does not explain where they are: a mover lands where it was not; a piece of still structure
+  slid onto more of that structure lands on what pc1 saw there too."""
   d, j = scene.tree.nearest(motion.apply(pts_Kx3), truncate)
   j = np.unique(j[np.isfinite(d)])
   if not len(j):

@@ -133,13 +133,14 @@ class Objects:
   object_top: float = 2.6  # m above the ground: higher points join no object
   min_points: int = 12  # points of an object (and of a part kept still)
   # A group kept still may join a mover to what stands beside it: its unexplained points' own
-  # groups (parts, at most `part_share` of it) are fitted, and a part's motion is kept when
-  part_share: float = 0.9
-  # ... this share of pc2's points it lands on were not there in pc1 (also asked of any object
-  # moved farther than its own width),
+  # groups (parts) are fitted, and a part's motion is kept where it lands on `novelty` new
+  # points, leaves a place whose cost is `vacated` and is `part_size` wide.
+  part_share: float = 0.9  # a part holding more of its group is the group again: not fitted
+  # Share of the pc2 points a motion lands on that pc1 did not see there (asked too of any
+  # object moved farther than its own width: a mover that far has left its own place).
   novelty: float = 0.7
-  vacated: float = 0.6  # ... its mean cost standing still is at least this,
-  part_size: float = 1.0  # m: ... and it is this wide
+  vacated: float = 0.6  # a part's least mean cost standing still (pc2 shows its place empty)
+  part_size: float = 1.0  # m: a part's least width seen from above
   max_high: float = 0.25  # share above object_top beyond which a group is structure
   max_size: float = 14.0  # m: a larger group is structure (a facade), never moved
   unexplained: float = 0.15  # m from ego-compensated pc2 (from above): unexplained

@@ -74,12 +74,12 @@ class SweepInfo:
             + ("; the method's flow was a start" if self.used_network else "")
             + "".join(f"\nnote: {n}" for n in self.notes))
 
-
   def _sensor_text(self) -> str:
+    """Where pc2's sensor was found, when not at the frame's origin."""
     if not any(self.sensor2):
       return ""
-    return ", judged from PC2's sensor found at (" + ", ".join(f"{v:.2f}" for v in self.sensor2) + (
-      ") m")
+    return ", judged from PC2's sensor found at (" + ", ".join(
+      f"{v:.2f}" for v in self.sensor2) + ") m"
 
 
 def settings_of(settings=None) -> Sweep:
