@@ -229,9 +229,9 @@ def _onto_what_stood(scene, pts_Kx3, fit) -> bool:
   _, motion, truncate = fit
   centre = pts_Kx3.mean(0)
   shift = np.linalg.norm(motion.apply(centre[None])[0, :2] - centre[:2])
-  extent = np.ptp(pts_Kx3[:, :2], axis=0).max()
-  novelty = _novelty(scene, pts_Kx3, motion, truncate)
-  return bool(shift > extent and novelty < scene.settings.novelty)
+  if shift <= np.ptp(pts_Kx3[:, :2], axis=0).max():
+    return False
+  return _novelty(scene, pts_Kx3, motion, truncate) < scene.settings.novelty
 
 
 def _unexplained_parts(idx, unexplained_N, pc1_Nx3, s):
