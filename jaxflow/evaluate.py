@@ -23,10 +23,18 @@ pair). Many processes: --coordinator, --num_processes, --process_id (jaxflow.run
 
 import functools
 
-from jaxflow import cli
+from jaxflow import cli, data
+from jaxflow.data import registry as data_registry
 from jaxflow.runtime import distributed
 from jaxflow.evaluation import evaluator, export, reporting
 from jaxflow.methods import registry
+
+
+def _dataset_help() -> str:
+  """--dataset's help: every registered format with its spec (jaxflow.data.registry.usage)."""
+  data.formats()  # every reader registers its formats
+  return ("FORMAT:SPEC (default: config.eval.dataset), e.g. kitti:data/KITTI_processed_occ_final. "
+          "The formats: " + data_registry.usage() + ".")
 
 
 def _define_flags():
@@ -38,8 +46,7 @@ def _define_flags():
     "config", cli.EVAL_CONFIG, "Evaluation settings (config.eval).", lock_config=True)
   flags.DEFINE_string("checkpoint", None, "Workdir, checkpoints folder or step folder (default: the "
                       "shipped jaxflow/checkpoints/jaxflow_synthetic/).")
-  flags.DEFINE_string("dataset", None, "FORMAT:ROOT, e.g. kitti:data/KITTI_processed_occ_final "
-                      "(default: config.eval.dataset).")
+  flags.DEFINE_string("dataset", None, _dataset_help())
   flags.DEFINE_string("split", None, "Dataset split (default: config.eval.split).")
   flags.DEFINE_string("json", None, "Write the results here as JSON.")
   flags.DEFINE_string("render_dir", None, "Render every pair into this folder as NAME.png "

@@ -44,6 +44,10 @@ DEFAULT_MAX_POINTS = 8192  # the paper's evaluation size
 DEFAULT_ITERS = 32  # the paper's flow iterations at test time
 DEFAULT_CORR_CHUNK = 2048  # full=True: pc1 rows of the correlation / kNN built at a time
 SIZE_RATIO_WARNING = 100  # one cloud with this many times the other's points: a warning
+# Said after the note of a cloud read with another up axis than the models' (z up: a sweep's).
+LIDAR_HINT = ("; for a raw 360-degree LiDAR sweep (ground kept, before any cut) use --lidar "
+              "(lidar=True in Python): the ground, the sensor's ego-motion and the moving objects, "
+              "jaxflow.lidar.sweep")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,6 +125,7 @@ class Predictor:
                               use_network, sweep_settings, **kwargs)
     pc1 = as_cloud(pc1_Nx3, names[0], self.min_points)
     up, note = frames.resolve_up(pc1, up, frames.MODEL_UP, names[0], ground_limits)
+    note = note and note + LIDAR_HINT  # a cloud read with another up is likely a sweep
     inner = self._predict(frames.to_model(pc1, up),
                           frames.to_model(as_cloud(pc2_Mx3, names[1], self.min_points), up),
                           **kwargs)
@@ -184,9 +189,11 @@ def sweep_prediction(get_predictor, pc1_Nx3, pc2_Mx3, names=("pc1", "pc2"), up: 
   Predictor, called only when the method runs (a camera's view, or `use_network`): a 360-degree
   sweep loads no network (None: no method runs, the `lidar` method alone). `sweep_settings`:
   raw_sweep_flow's `settings`; `kwargs`: Predictor.predict's sampling arguments."""
-  clouds = [as_cloud(c, n, 3) for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
-  up, up_note = frames.resolve_up(clouds[0], up, "z", names[0], ground_limits)
   sweep_settings = sweep.settings_of(sweep_settings)
+  least = sweep.min_points(sweep_settings)  # the pipeline's own, whether or not a method runs
+  clouds = [as_cloud(c, n, least, sweep.too_few(sweep_settings))
+            for c, n in zip((pc1_Nx3, pc2_Mx3), names)]
+  up, up_note = frames.resolve_up(clouds[0], up, "z", names[0], ground_limits)
   max_range = sweep_settings.max_range if max_range is None else max_range
   kwargs = {**dict(num_iters=DEFAULT_ITERS, max_points=DEFAULT_MAX_POINTS, full=False,
                    corr_chunk=DEFAULT_CORR_CHUNK, seed=0), **kwargs}
@@ -261,8 +268,9 @@ def _spread(points_Nx3, sampled_Sx3, flow_Sx3, chunk):
   return flow_Sx3[nearest_N]
 
 
-def as_cloud(points, name, min_points: int) -> np.ndarray:
-  """An N x 3 float32 array, finite, with at least `min_points` points; else DataError(name)."""
+def as_cloud(points, name, min_points: int, needs: str | None = None) -> np.ndarray:
+  """An N x 3 float32 array, finite, with at least `min_points` points; else DataError(name).
+  `needs`: what asks for `min_points`, in the error (default: the model's neighbourhood)."""
   a = np.asarray(points)
   if a.dtype.kind not in "iuf":
     raise DataError(name, f"points have dtype {a.dtype}, expected numbers")
@@ -272,8 +280,8 @@ def as_cloud(points, name, min_points: int) -> np.ndarray:
   if not np.isfinite(a).all():
     raise DataError(name, "non-finite coordinates (read_points drops such rows)")
   if len(a) < min_points:
-    raise DataError(name, f"only {len(a)} points; the model needs at least {min_points} "
-                    "(its neighbourhood size, config.model.knn)")
+    raise DataError(name, f"only {len(a)} points; " + (needs or (
+      f"the model needs at least {min_points} (its neighbourhood size, config.model.knn)")))
   return a
 
 

@@ -13,18 +13,20 @@ PC1 and PC2 are any file `jaxflow.data.read_points` reads (.npy, .ply, .pcd, KIT
 in metres, in the models' frame (x left, y up, z forward; jaxflow.geometry.frames), or with --up z
 (the default with --lidar) or x: then rotated into it and the flow back. Without --up, a cloud flat
 along one axis (a street scene: metres high, tens of metres across) is read with that axis up and a
-note says so; an --up that contradicts it is refused (--noground_limits: taken as given). The
-output is float32 N x 3 (.npy; --out FLOW.txt or FLOW.csv writes the same rows as text), one row
-per row of PC1's file, in file order: row i is the flow of PC1's i-th point. A row with a
-non-finite coordinate is left out of the estimate (the count is printed on stderr) and gets a NaN
-flow.
+note says so (and that a raw 360-degree sweep is --lidar's); an --up that contradicts it is refused
+(--noground_limits: taken as given). The output is float32 N x 3 (.npy; --out FLOW.txt or FLOW.csv
+writes the same rows as text), one row per row of PC1's file, in file order: row i is the flow of
+PC1's i-th point. A row with a non-finite coordinate is left out of the estimate (the count is
+printed on stderr) and gets a NaN flow.
 
 Method (--method, jaxflow.methods.registry, docs/methods.md): `optimise` (the default, also the
 Python API's) refines the network's flow against the whole clouds; `network` is the network alone
 (the paper's protocol, evaluate.py's default); `nsfp` is the NSFP baseline (no checkpoint;
 --objective exact or grid). --steps N caps the optimisation steps; --method.METHOD.FIELD=V sets
 any of the method's settings (e.g. --method.optimise.bodies.inlier=0.1; --print_config lists
-them). An optimisation that did not converge says so on stderr.
+them). An optimisation that did not converge says so on stderr. A long one (NSFP: minutes) shows
+a bar on a terminal; with stderr in a log file it writes its expected time (an estimate, from the
+pace of its first steps) and a line every 10% of its steps (jaxflow.methods.optimiser).
 
 Cloud size (jaxflow.inference): clouds above --max_points (config.eval.num_points, 8192) are sampled
 and the flow mapped back to every PC1 point; --full (or --max_points 0) uses whole clouds, the
@@ -32,13 +34,14 @@ correlation built --corr_chunk rows at a time. --seed seeds the sampling.
 
 Raw sweeps (--lidar, jaxflow.lidar.sweep): the ground if the sweep has one (local planes along --up:
 z, the LiDAR convention; y for a camera frame such as KITTI's), the sensor's ego-motion (GICP of the
-two sweeps) and one rigid motion per moving object; every other point, ground and far points
-included, moves with the ego-motion. A note says what was found. The method runs on a camera's view
-(under half the azimuth: its non-ground points within --max_range, 35 m, the others getting the
-rigid motion of its static part) and, on a 360-degree sweep, only when --method is given: its flow
-is then one more start of the fits (slow; benchmarks/REAL_SWEEPS.md). Otherwise no checkpoint is
-loaded. --noground_limits skips the up-axis check. --method.lidar.FIELD=V sets the pipeline's
-settings (jaxflow.lidar.settings; --print_config lists them with their units).
+two sweeps) and one rigid motion per moving object, sought in the whole sweep (beyond --max_range
+too); every point on no moving object, ground included, moves with the ego-motion. A note says what
+was found. The method runs on a camera's view (under half the azimuth: its non-ground points within
+--max_range, 35 m, the others getting the rigid motion of its static part) and, on a 360-degree
+sweep, only when --method is given: its flow is then one more start of the fits (slow;
+benchmarks/REAL_SWEEPS.md). Otherwise no checkpoint is loaded. --noground_limits skips the up-axis
+check. --method.lidar.FIELD=V sets the pipeline's settings (jaxflow.lidar.settings; --print_config
+lists them with their units).
 
 Model. The checkpoint (default: the shipped jaxflow/checkpoints/jaxflow_synthetic/) carries its
 config: the model is built from it. --config (default configs/default.py:eval) only sets evaluation
@@ -54,8 +57,9 @@ in its up axis, FILE.html a 3D viewer (jaxflow.viz.viewer; evaluate.py's --rende
 of every pair).
 
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
-than the model's neighbourhood config.model.knn) prints one line naming the file and the problem and
-exits with code 2.
+than the model's neighbourhood config.model.knn or, with --lidar, than the pipeline's 90 points a
+sweep, jaxflow.lidar.sweep.min_points) prints one line naming the file and the problem and exits
+with code 2.
 """
 
 import pathlib
@@ -94,8 +98,11 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   flags.DEFINE_enum("up", None, ["x", "y", "z"], "The clouds' up axis (z: LiDAR; y: the models' "
                     "frame): rotated into the models' frame, the flow back. Default: the axis PC1 "
                     "is flat along (a note says so), else z with --lidar, y without.")
-  flags.DEFINE_float("max_range", None, "--lidar: keep the points within this horizontal distance "
-                     "(m) of the sensor (default --method.lidar.max_range, 35); 0: all.")
+  flags.DEFINE_float("max_range", None, "--lidar: the horizontal distance (m) from the sensor "
+                     "within which the method sees the non-ground points (a camera's view, or "
+                     "--method's start on a sweep) and --render draws (default "
+                     "--method.lidar.max_range, 35; 0: all); a sweep's moving objects are sought "
+                     "beyond it too.")
   flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
   flags.DEFINE_string("ego_out", None, "--lidar: also write the sensor's estimated motion here, "
                       "a 4 x 4 matrix as text (x2 = R x1 + t, in the clouds' axes): the flow minus "

@@ -187,8 +187,9 @@ def test_optimise_ends_with_the_bodies_stage_of_each_pair():
   pc1, pc2, truth, body = _pair(n=1000)
   start = _stuck_start(pc1, truth, body)
   other = (pc1, pc2, np.zeros_like(start))  # the second pair of the batch: a zero start
-  flow = optimise.rigid_bodies_flow(*map(np.stack, zip((pc1, pc2, start), other)), bodies.Settings())
-  assert flow.shape == (2, *pc1.shape)
+  flow, motion_of = optimise.rigid_bodies_flow(*map(np.stack, zip((pc1, pc2, start), other)),
+                                               bodies.Settings())
+  assert flow.shape == (2, *pc1.shape) and motion_of.shape == (2, len(pc1))
   for i, (a, b, f) in enumerate(((pc1, pc2, start), other)):  # each pair gets its own bodies
     np.testing.assert_allclose(np.asarray(flow[i]), bodies.rigid_bodies(a, b, f)[0], atol=1e-6)
   assert not np.allclose(np.asarray(flow[0]), np.asarray(flow[1]), atol=1e-3)

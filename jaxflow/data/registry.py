@@ -97,6 +97,35 @@ def formats() -> tuple[str, ...]:
   return tuple(_FORMATS)
 
 
+# What follows each reader's format name in a spec, and what it reads: --dataset's help (`usage`;
+# tests/test_newcomer.py checks that every registered format has its entry here).
+USAGE = {
+  "ft3d": (":DIR", "HPLFlowNet's FlyingThings3D_subset_processed_35m"),
+  "kitti": (":DIR", "HPLFlowNet's KITTI_processed_occ_final"),
+  "argoverse": (":DIR", "NSFP's Argoverse .npz pairs"),
+  "flownet3d": (":DIR", "FlowNet3D's FT3Do or KITTIo .npz pairs"),
+  "files": (":PC1,PC2", "two point files"),
+  "h5": (":FILE.h5", "pairs converted by jaxflow.data.convert"),
+  "opensf": (":DIR[,KEY=VALUE,...]", "OpenSceneFlow's h5 logs, DIR/SPLIT/LOG.h5; keys: "
+             "ground=remove|keep, max_range=R, frame=ego|camera, region=disc|challenge|sweep, "
+             "lidar=auto|ego|sensor, calibration=AV2_DIR"),
+  "synthetic_things": ("[:N]", "N generated FT3D-like pairs"),
+  "synthetic_lidar": ("[:N]", "N generated LiDAR-like pairs, KITTI's cut"),
+  "synthetic_mix": ("[:N]", "N generated pairs of both kinds"),
+  "synthetic_sweep": (":N[,form=generated|city|noground][,reverse=1]",
+                      "N generated raw 360-degree sweep pairs, z up"),
+}
+
+
+def usage() -> str:
+  """Every registered format as "FORMAT:SPEC (what it reads)", in registration order (a format
+  without a USAGE entry: FORMAT:ROOT, or FORMAT[:ARG])."""
+  return "; ".join(
+    name + (f"{USAGE[name][0]} ({USAGE[name][1]})" if name in USAGE else
+            ":ROOT" if needs_root else "[:ARG]")
+    for name, (_, needs_root) in _FORMATS.items())
+
+
 def open_dataset(spec: str, split: str | None = None) -> Dataset:
   """Opens "FORMAT:ARG" (a registered format); unknown format or missing root -> DataError."""
   fmt, _, arg = spec.partition(":")

@@ -4,18 +4,23 @@ a piece's own motion explains it better than another motion (the world's, standi
     groups = cell_components(points_Nx3, seeds_N, cell=0.3, bridge=True)
     for k, indices in groups.members(): ...
     beats(base_costs_K, other_costs_K, Rule(margin=0.05))   # True, False, or None: undecided
+    keep = given_kept(groups, evidence.costs(pc1 + new), evidence.costs(pc1 + given), rule)
 
 The raw-sweep pipeline (jaxflow.lidar.objects: connected cells seen from above, each group fitted
 against standing still) and optimise's last stage (jaxflow.methods.bodies: sequential RANSAC and
 an assignment, each body judged against the world's motion) both speak of groups this way and
-judge with `beats`. A cost is per point (a distance to pc2, truncated), NaN where pc2 could not
-see the point placed so: a placement pc2 cannot see is no evidence either way.
+judge with `beats`; every stage of optimise keeps, group by group, the flow it was given where pc2
+does not support its new one (`given_kept`). A cost is per point (a distance to pc2, truncated),
+NaN where pc2 could not see the point placed so (`Evidence`): a placement pc2 cannot see is no
+evidence either way.
 """
 
 import dataclasses
 
 import numpy as np
 from scipy import ndimage
+
+from jaxflow.geometry.visibility import SEEN
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,3 +90,36 @@ def beats(base_K, other_K, rule: Rule) -> bool | None:
   error = diff.std() / np.sqrt(len(diff))
   return bool(gain >= max(rule.margin, rule.relative_margin * base_K[both].mean())
               and gain >= rule.significance * error)
+
+
+class Evidence:
+  """What pc2 shows of points placed somewhere: per point, the distance to pc2's local plane
+  (truncated at `truncate` m) where pc2 would see the point there, NaN where it would not (hidden
+  behind a nearer return or outside pc2's view). `target`: a registration.PlaneTarget of pc2;
+  `view`: a visibility.View of pc2 (None: every placement counts as seen)."""
+
+  def __init__(self, target, view, truncate: float):
+    self.target, self.view, self.truncate = target, view, truncate
+
+  def costs(self, placed_Nx3) -> np.ndarray:
+    placed = np.asarray(placed_Nx3, np.float64)
+    seen = np.ones(len(placed), bool) if self.view is None else self.view.state(placed) == SEEN
+    out = np.full(len(placed), np.nan)
+    out[seen] = self.target.plane_distance(placed[seen], self.truncate)
+    return out
+
+
+def given_kept(groups: Groups, new_costs_N, given_costs_N, rule: Rule) -> np.ndarray:
+  """Per point (bool N), whether its group keeps the placement it was given rather than a new one:
+  where the given placement's costs beat the new one's (`rule`), or pc2 sees under `min_seen` of
+  the group placed anew and not of it placed as given (nothing supports the new placement, and the
+  given is seen; where pc2 sees neither, no evidence refutes the new). Points in no group take the
+  new."""
+  keep = np.zeros(len(groups.label), bool)
+  for _, pts in groups.members():
+    if len(pts):
+      verdict = beats(new_costs_N[pts], given_costs_N[pts], rule)
+      if verdict is None:
+        verdict = np.isfinite(given_costs_N[pts]).mean() >= rule.min_seen
+      keep[pts] = verdict
+  return keep

@@ -191,7 +191,9 @@ class Objects:
 @dataclasses.dataclass(frozen=True)
 class Sweep:
   """The raw-sweep pipeline (jaxflow.lidar.sweep.raw_sweep_flow): its blocks and limits."""
-  max_range: float = 35.0  # m: the points within this horizontal distance are kept (0: all)
+  # m: the non-ground points within this horizontal distance are what a method sees (0: all);
+  # moving objects are sought in the whole sweep (jaxflow.lidar.sweep).
+  max_range: float = 35.0
   min_azimuth: float = 0.5  # share of 360 deg a sweep covers at least (a camera's view: less)
   frame_rate_hz: float = 10.0  # sweeps a second: the per-second limits are divided by it
   static_threshold: float = 0.1  # m: within this of a rigid fit of a method's flow: static

@@ -13,12 +13,15 @@ sensor's own motion is most of the flow:
    the one that explains the static world best kept (jaxflow.lidar.ego);
 3. the ground again, fitted to both sweeps in pc1's frame, so the two agree;
 4. moving objects: groups of points the ego-motion does not explain, one rigid motion each
-   (jaxflow.lidar.objects), judged on what pc2's sensor saw from where it was (found from its
-   rings, jaxflow.lidar.sensor: a vehicle frame's origin lies below it); every other point,
-   ground and far points included, gets the ego-motion flow.
+   (jaxflow.lidar.objects), judged on what pc2's sensor saw from where it was (found from its rings,
+   jaxflow.lidar.sensor: a vehicle frame's origin lies below it), sought in the whole sweep
+   (`max_range` cuts only what flow_fn sees: the AV2 challenge scores a 70 x 70 m box, whose corners
+   lie beyond a 35 m disc); every point on no moving object, ground included, gets the ego-motion
+   flow.
 `flow_fn(pc1_kept, pc2_kept)` (e.g. the network on the non-ground points within `max_range`) is
-called only with `use_network=True`: its flow is then one more start for the ego-motion and for
-every object (benchmarks/METHODS.md measures what it adds). Any up axis: the work is done z up.
+called only with `use_network=True` (or on a camera's view, where the farther points get the rigid
+motion of its static part): its flow is then one more start for the ego-motion and for every object
+(benchmarks/METHODS.md measures what it adds). Any up axis: the work is done z up.
 The tuning is `settings` (jaxflow.lidar.settings.Sweep; `python -m jaxflow.predict --method lidar
 --print_config` lists its fields with their units).
 """
@@ -91,6 +94,20 @@ def settings_of(settings=None) -> Sweep:
     raise ConfigError("the raw-sweep pipeline's settings are a jaxflow.lidar.settings.Sweep, got "
                       f"{type(settings).__name__}")
   return settings
+
+
+def min_points(settings: Sweep | None = None) -> int:
+  """The fewest points of a sweep the pipeline fits: three times the neighbours of its finest GICP
+  pass (settings.ego.scales), ego.estimate's own rule (with fewer it fits no motion at all)."""
+  return 3 * settings_of(settings).ego.scales[-1][1]
+
+
+def too_few(settings: Sweep | None = None) -> str:
+  """Why a sweep needs `min_points`, for the error of a smaller one."""
+  neighbours = settings_of(settings).ego.scales[-1][1]
+  return (f"the raw-sweep pipeline (--lidar, method lidar) needs at least {min_points(settings)} "
+          f"points a sweep: its ego-motion fit (GICP) takes {neighbours} neighbours a point in its "
+          "finest pass, and three times as many points (--method.lidar.ego.scales)")
 
 
 def _surface(points_Nx3, name, notes, settings):

@@ -2,7 +2,8 @@
 baseline): NSFP's MLP optimised per pair from zero flow, no network, no checkpoint. Its published
 settings (optimiser.NSFP): the exact two-way Chamfer, nearest points by k-d tree every step (~170 ms
 a step at 8192 points on a 2-core CPU); the one-way distance grid (--objective grid) is faster but
-far less accurate for NSFP on FT3D (benchmarks/METHODS.md)."""
+far less accurate for NSFP on FT3D (benchmarks/METHODS.md). Its progress goes to stderr
+(optimiser.optimise_host_loop: a bar on a terminal, plain lines with the expected time in a log)."""
 
 import dataclasses
 

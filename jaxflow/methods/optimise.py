@@ -1,6 +1,7 @@
 """The `optimise` method: the network's flow refined per pair by the fast optimiser (distance-grid
 Chamfer + smoothness, then the piecewise-rigid steps of jaxflow.methods.rigid_clusters, an exact
-polish, and the scene's rigid bodies fitted to pc2 by jaxflow.methods.bodies): the recommended
+polish, and the scene's rigid bodies fitted to pc2 by jaxflow.methods.bodies, each stage adopted
+only where pc2 supports it): the recommended
 method for pairs that are not raw LiDAR sweeps (those take the `lidar` method), and predict's
 default."""
 
@@ -13,8 +14,51 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflow.errors import ConfigError
+from jaxflow.geometry import groups, registration
+from jaxflow.geometry.visibility import View
 from jaxflow.methods import bodies, objectives, optimiser, rigid_clusters
 from jaxflow.methods.interface import Method
+
+
+@dataclasses.dataclass(frozen=True)
+class Guard:
+  """When a group of points keeps the flow a stage was given rather than the stage's own
+  (jaxflow.geometry.groups.given_kept): where pc2 sees under `min_seen` of the group moved by the
+  stage's flow, or where the given flow places the group nearer pc2's surfaces by `margin` m on
+  average and by `significance` standard errors, on the points pc2 sees both ways. Distances to
+  pc2's local planes, truncated at `truncate` m; a point over `hidden` m behind pc2's nearest
+  return in its direction (directions binned by `view_bin_deg` degrees), or outside pc2's view, is
+  no evidence."""
+  margin: float = 0.01
+  significance: float = 2.0
+  min_seen: float = 0.3
+  truncate: float = 0.3
+  hidden: float = 0.5
+  view_bin_deg: float = 1.0
+
+  def __post_init__(self):
+    for name in ("margin", "significance"):
+      if not getattr(self, name) >= 0:
+        raise ValueError(f"optimise guard.{name} must be >= 0, got {getattr(self, name)!r}")
+    if not 0 <= self.min_seen <= 1:
+      raise ValueError(f"optimise guard.min_seen must be in [0, 1], got {self.min_seen!r}")
+    for name in ("truncate", "hidden", "view_bin_deg"):
+      if not getattr(self, name) > 0:
+        raise ValueError(f"optimise guard.{name} must be > 0, got {getattr(self, name)!r}")
+
+  def rule(self) -> groups.Rule:
+    return groups.Rule(margin=self.margin, significance=self.significance, min_seen=self.min_seen)
+
+  def evidence(self, pc2_Mx3) -> groups.Evidence:
+    """What pc2 (in the model frame: y up, the sensor at the origin) shows. A cloud whose centre
+    lies farther from the origin than any of its points from that centre was not seen from the
+    origin (a map frame's coordinates): there every placement counts as seen."""
+    centre = pc2_Mx3.mean(0)
+    view = None
+    if np.linalg.norm(centre) <= np.linalg.norm(pc2_Mx3 - centre, axis=1).max(initial=0.0):
+      bins = round(360 / self.view_bin_deg), round(180 / self.view_bin_deg)
+      view = View(pc2_Mx3, "y", *bins, self.hidden)
+    return groups.Evidence(registration.PlaneTarget(pc2_Mx3), view, self.truncate)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,7 +70,9 @@ class Optimise:
   free-vector steps from that flow on the exact two-way Chamfer (nearest points by k-d tree), which
   the one-way grid cannot give (steps 0: none); then `bodies` (None: none): the scene's rigid bodies
   found in that flow and fitted to pc2 (jaxflow.methods.bodies, on the host: one
-  device-host round trip a batch)."""
+  device-host round trip a batch). After each of the last three, `guard` (None: none): each group
+  of points (the rigid clusters of the flow a stage was given, or the bodies' motions) keeps the
+  flow it was given where pc2 does not support the stage's own (Guard)."""
   # The network's iterations for the starting flow (None: the caller's, e.g. --iters) and its
   # correlation candidates (None: the model's, config.model.infer_truncate_k): 8 and 64 instead of
   # 32 and 512 take the network's start from ~10 to ~3 s a pair at 8192 points, and the method's
@@ -43,6 +89,9 @@ class Optimise:
   polish: optimiser.Settings = optimiser.Settings(
     model="flow", objective="exact", steps=200, learning_rate=0.02, smoothness=1.0, refresh=5)
   bodies: "bodies.Settings | None" = bodies.Settings()  # (a string: the field hides the module)
+  # Each stage after the descent adopts its flow group by group only where pc2 supports it (None:
+  # unguarded): a stage turned a few micrometres of change in its start into metres of error.
+  guard: Guard | None = Guard()
 
   def __post_init__(self):
     for name in ("start_iters", "start_candidates"):
@@ -79,6 +128,7 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
   `seconds`: a dict that gets each stage's seconds (each stage then waited for: a profile)."""
   clock = _Clock(seconds)
   clock("start", init_BxNx3, pc1_BxNx3, pc2_BxMx3)
+  guarded = _Guarded(pc1_BxNx3, pc2_BxMx3, chosen.guard)
   search = chosen.descent.search
   grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.descent, now=True)
   k = max(chosen.descent.neighbours, chosen.polish.neighbours, chosen.clusters.neighbours)
@@ -95,16 +145,47 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
     if chosen.choose:
       matches = [objectives.nearest_now(pc1_BxNx3 + f, pc2_BxMx3, search) for f in (flow, fitted)]
       fitted = _choose(labels, flow, fitted, pc1_BxNx3, pc2_BxMx3, matches, chosen.descent.truncate)
-      clock("rigid clusters", fitted)
-    flow = fitted
+    flow = guarded(labels, fitted, flow)
+    clock("rigid clusters", flow)
   if chosen.polish.steps:
-    flow = optimiser.optimise_host_loop(flow, pc1_BxNx3, pc2_BxMx3, chosen.polish,
-                                        nbr_BxNxK=nbr(chosen.polish))[0]
+    polished = optimiser.optimise_host_loop(flow, pc1_BxNx3, pc2_BxMx3, chosen.polish,
+                                            nbr_BxNxK=nbr(chosen.polish))[0]
+    if guarded.active:
+      labels = _clusters(pc1_BxNx3, flow, graph[:, :, :chosen.clusters.neighbours + 1],
+                         chosen.clusters)
+      polished = guarded(labels, polished, flow)
+    flow = polished
     clock("polish", flow)
   if chosen.bodies is not None:
-    flow = rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow, chosen.bodies)
+    fitted, motion_of = rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow, chosen.bodies)
+    flow = guarded(motion_of, fitted, flow)
     clock("rigid bodies", flow)
   return flow, info
+
+
+class _Guarded:
+  """guarded(labels B x N, new, given) -> per pair, each group's new flow where pc2 supports it
+  and its given flow elsewhere (Guard; None: the new flow everywhere)."""
+
+  def __init__(self, pc1_BxNx3, pc2_BxMx3, guard: Guard | None):
+    self.active = guard is not None
+    if self.active:
+      self.rule, self.pc1 = guard.rule(), np.asarray(pc1_BxNx3, np.float64)
+      self.evidence = [guard.evidence(p) for p in np.asarray(pc2_BxMx3, np.float64)]
+
+  def __call__(self, labels_BxN, new_BxNx3, given_BxNx3):
+    if not self.active:
+      return new_BxNx3
+    new, given = np.asarray(new_BxNx3), np.asarray(given_BxNx3)
+    out = []
+    for b, label_N in enumerate(np.asarray(labels_BxN)):
+      found, label_N = np.unique(label_N, return_inverse=True)
+      label_N = np.where(found[label_N] < 0, -1, label_N - (found < 0).sum())  # -1: no group
+      costs = [self.evidence[b].costs(self.pc1[b] + f[b]) for f in (new, given)]
+      keep = groups.given_kept(groups.Groups(label_N, len(found) - (found < 0).sum()), *costs,
+                               self.rule)
+      out.append(np.where(keep[:, None], given[b], new[b]))
+    return jnp.asarray(np.stack(out))
 
 
 @functools.partial(jax.jit, static_argnames="chosen")
@@ -125,10 +206,20 @@ def _choose(labels, flow, fitted, pc1_BxNx3, pc2_BxMx3, matches, truncate: float
                                matches=matches)
 
 
+@functools.partial(jax.jit, static_argnames="settings")
+def _clusters(pc1_BxNx3, flow_BxNx3, graph_BxNxK, settings: rigid_clusters.Settings):
+  return rigid_clusters.clusters(pc1_BxNx3, flow_BxNx3, settings, graph_BxNxK)
+
+
 def rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, chosen: bodies.Settings):
-  """jaxflow.methods.bodies.rigid_bodies of each pair of a batch (NumPy on the host), as a jax array."""
-  return jnp.asarray(np.stack([bodies.rigid_bodies(a, b, f, chosen)[0] for a, b, f in
-                               zip(*map(np.asarray, (pc1_BxNx3, pc2_BxMx3, flow_BxNx3)))]))
+  """jaxflow.methods.bodies.rigid_bodies of each pair of a batch (NumPy on the host): the flow (a
+  jax array) and each point's motion (B x N; -1: none, its flow unchanged)."""
+  flows, motion_of = [], []
+  for a, b, f in zip(*map(np.asarray, (pc1_BxNx3, pc2_BxMx3, flow_BxNx3))):
+    flow, found = bodies.rigid_bodies(a, b, f, chosen)
+    flows.append(flow)
+    motion_of.append(np.full(len(a), -1) if found.motion_of is None else found.motion_of)
+  return jnp.asarray(np.stack(flows)), np.stack(motion_of)
 
 
 def _defaults(steps, iters, objective):

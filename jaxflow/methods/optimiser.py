@@ -21,14 +21,13 @@ both; far from the origin float32 would lose the centimetres).
 
 import dataclasses
 import functools
-import sys
 
 import jax
 import jax.numpy as jnp
 import optax
-from tqdm import tqdm
 
 from jaxflow.methods import distance_grid, objectives, rigid_clusters
+from jaxflow.methods.progress import Progress
 from jaxflow.network.layers import PRECISIONS
 
 MODELS = ("flow", "mlp", "rigid")
@@ -339,8 +338,10 @@ def optimise_host_loop(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clu
   """`optimise`'s result, the nearest points of the exact objective searched from Python between
   compiled blocks of `refresh` steps (objectives.host_search on the CPU, the device's search
   elsewhere) instead of inside one compiled loop. `grids` (grid objective) and `nbr_BxNxK`
-  (smoothness) are searched here when not given, the same way. `progress`: a bar on stderr of
-  the steps, the lowest loss and the time left (None: when stderr is a terminal)."""
+  (smoothness) are searched here when not given, the same way. `progress`: a bar on stderr of the
+  steps, the lowest loss and the time left; None: the bar on a terminal, and elsewhere (a log file)
+  plain lines when the run is expected to take over 30 s: that estimate first, then a line every
+  10% of the steps (jaxflow.methods.progress)."""
   _check(settings, clusters)
   search = settings.search
   if grids is None:
@@ -359,19 +360,19 @@ def optimise_host_loop(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clu
   held = match(carry)
   start = _host_loss(carry, pair, grids, nbr_BxNxK, held, settings)
   running = settings.steps > 0  # (patience >= 1: every pair runs its first step)
-  bar = tqdm(total=settings.steps, desc=f"{settings.model} optimisation", unit="step",
-             file=sys.stderr, leave=False, dynamic_ncols=True, mininterval=1.0,
-             disable=None if progress is None else not progress)
-  with bar:
+  shown = Progress(f"{settings.model} optimisation", settings.steps, progress)
+  try:
     while running:
       carry, running = _host_block(carry, pair, grids, nbr_BxNxK, held, settings)
       running = bool(running)
       if running:
         held = match(carry)
-      if not bar.disable:  # the furthest pair's steps (early stopping ends the others sooner)
-        bar.update(int(jnp.max(carry[5])) - bar.n)
-        bar.set_postfix(loss=f"{float(jnp.min(carry[2])):.4g}", refresh=False)
-    bar.refresh()  # the last state, drawn however soon it came
+      if shown.active:  # the furthest pair's steps (early stopping ends the others sooner)
+        shown.update(int(jnp.max(carry[5])), lambda: float(jnp.min(carry[2])))
+  finally:
+    shown.close()
+  if shown.lines:
+    shown.done(int(jnp.max(carry[5])))
   return _host_result(carry, pair, grids, nbr_BxNxK, start, settings)
 
 
