@@ -112,7 +112,7 @@ class Registration:
     scales, inlier = self.settings.scales, self.settings.inlier
     for _ in range(self.settings.trim_rounds):
       kept = residual.per_point(motion, self.pc1) < inlier
-      if kept.sum() < 3 * scales[-1][1]:
+      if kept.sum() < min_points(self.settings):
         break
       motion = Registration(self.pc1[kept], self.pc2, self._targets, self.settings).gicp(
         motion, scales[1:])
@@ -215,6 +215,12 @@ def search(target: Target, above_Kx3, scale: float = 0.5, settings=None,
   return yaw_motion(float(np.degrees(yaw[best])), float(x[best]), float(y[best]))
 
 
+def min_points(settings) -> int:
+  """The fewest points GICP fits (a lidar.settings.Ego): three times the neighbours a point takes
+  in its finest pass."""
+  return 3 * settings.scales[-1][1]
+
+
 def estimate(pc1_Nx3, pc2_Mx3, ground1_N=None, ground2_M=None, starts=None, seed: int = 0,
              search_start: bool = True, settings=None,
              frame_rate_hz: float | None = None) -> EgoMotion:
@@ -225,7 +231,7 @@ def estimate(pc1_Nx3, pc2_Mx3, ground1_N=None, ground2_M=None, starts=None, seed
   pc1 = np.asarray(pc1_Nx3, np.float64)
   pc2 = np.asarray(pc2_Mx3, np.float64)
   identity = rigid.Motion.of(np.eye(3), np.zeros(3))
-  if min(len(pc1), len(pc2)) < 3 * settings.scales[-1][1]:
+  if min(len(pc1), len(pc2)) < min_points(settings):
     return EgoMotion(identity, 0.0, float("nan"), "zero", {}, note="ego-motion: too few points "
                      f"({len(pc1)} in pc1, {len(pc2)} in pc2) to fit; zero motion assumed")
   registration = Registration(pc1, pc2, settings=settings)

@@ -97,9 +97,9 @@ def settings_of(settings=None) -> Sweep:
 
 
 def min_points(settings: Sweep | None = None) -> int:
-  """The fewest points of a sweep the pipeline fits: three times the neighbours of its finest GICP
-  pass (settings.ego.scales), ego.estimate's own rule (with fewer it fits no motion at all)."""
-  return 3 * settings_of(settings).ego.scales[-1][1]
+  """The fewest points of a sweep the pipeline fits: ego.estimate's own (with fewer it fits no
+  motion at all)."""
+  return ego.min_points(settings_of(settings).ego)
 
 
 def too_few(settings: Sweep | None = None) -> str:
