@@ -186,13 +186,43 @@ def define_run_flags(default_method: str):
   flags.DEFINE_integer("max_points", None, "Clouds above this size are sampled to it (default: "
                        "config.eval.num_points, 8192; 0: whole clouds).")
   flags.DEFINE_bool("full", False, "Whole clouds (--max_points 0), the correlation and kNN built "
-                    "--corr_chunk rows at a time (memory linear in the points).")
+                    "config.model.corr_chunk rows at a time (--corr_chunk; memory linear in the "
+                    "points).")
   flags.DEFINE_integer("corr_chunk", None, "pc1 rows of the correlation and kNN built at a time "
-                       "(config.model.corr_chunk; default: the checkpoint's, 2048 with --full; "
-                       "0: all at once).")
+                       "(--full): sets config.model.corr_chunk (default: the checkpoint's; 0: as many as "
+                       "the clouds' sizes and the device's memory allow, jaxflow.geometry.ops).")
   flags.DEFINE_integer("seed", None, "Seed of the point sampling (default: config.eval.seed, 0).")
   flags.DEFINE_string("save_flows", None, "Write the flow of every pair into this folder, one "
                       "NAME.npy per pair, NAME made from the pair (jaxflow.evaluation.export).")
+
+
+def run_methods() -> list[tuple[str, object]]:
+  """[(name, settings)] of the methods a command line runs (jaxflow.methods.registry): --method's,
+  with --steps, --iters, --objective and its --method.NAME.FIELD=V. Predict's --lidar (or --method
+  lidar) is the raw-sweep method, listed first, with --max_range its max_range and, as its
+  `method`, --method's (default: the tool's own), listed second with those flags, and `start` when
+  --method is given: the method runs on a camera's view, and on a sweep as a start when named."""
+  from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
+
+  given = flags.FLAGS
+  name = given.method
+  lidar = "lidar" in given and (given.lidar or registry.get(name).raw_sweeps)
+  if not lidar:
+    if "max_range" in given and given.max_range is not None:
+      raise ConfigError("--max_range sets the lidar method's max_range: it needs --lidar")
+    return [(name, registry.settings(name, given.steps, given.iters, given.objective,
+                                     method_fields(name)))]
+  raw = next(m for m, chosen in registry.REGISTRY.items() if chosen.raw_sweeps)
+  nested = given["method"].default if name == raw else name
+  fields = {"method": nested, "start": name != raw and bool(given["method"].present),
+            **({} if given.max_range is None else {"max_range": given.max_range})}
+  names = {raw, nested, *(m for m, _ in _METHOD_FIELDS)}  # method.lidar.method may name another
+  chosen = registry.settings(raw, fields={**fields, **method_fields(raw, tuple(names))})
+  if chosen.method is None:
+    return [(raw, chosen)]
+  return [(raw, chosen), (chosen.method, registry.settings(
+    chosen.method, given.steps, given.iters, given.objective,
+    method_fields(chosen.method, (raw, nested))))]
 
 
 def run_settings(config):
@@ -217,11 +247,8 @@ def run_settings(config):
       config.eval.num_points = 0
     if given.seed is not None:
       config.eval.seed = given.seed
-    chunk = given.corr_chunk
-    if chunk is None and not config.eval.num_points and (given.full or given.max_points == 0):
-      chunk = 2048
-    if chunk is not None:
-      config.model.corr_chunk = chunk
+    if given.corr_chunk is not None:  # the model config is its one home
+      config.model.corr_chunk = given.corr_chunk
       model_fields = sorted({*model_fields, "corr_chunk"})
   return config, model_fields
 
@@ -256,19 +283,11 @@ def _parse_flags(argv: list[str], config_names=(),
       text.append(configfile.describe(flags.FLAGS[name].value, path.split(":")[0], name) + "\n")
     if "method" in flags.FLAGS:  # predict, evaluate.py: the methods' settings as they would run
       from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
-      method = flags.FLAGS.method
-      lidar = "lidar" in flags.FLAGS and flags.FLAGS.lidar and method != "lidar"
-      names = (method, "lidar") if lidar else (method,)  # predict --lidar --method X: both
       try:
-        chosen = [registry.settings(method, flags.FLAGS.steps, flags.FLAGS.iters,
-                                    flags.FLAGS.objective, method_fields(method, names))]
-        if lidar:
-          chosen.append(registry.settings("lidar", fields=method_fields("lidar", names)))
+        text += [registry.describe_settings(name, chosen) + "\n"
+                 for name, chosen in run_methods() if chosen is not None]
       except ConfigError as e:
         fail(str(e))
-      for name, settings in zip(names, chosen):
-        if settings is not None:
-          text.append(configfile.describe_settings(settings, f"method.{name}") + "\n")
     _write_and_exit("".join(text))
   from jaxflow.runtime import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)
   try:  # before jax starts its threads, before anything compiles

@@ -27,7 +27,6 @@ from jaxflow import cli, data
 from jaxflow.data import registry as data_registry
 from jaxflow.runtime import distributed
 from jaxflow.evaluation import evaluator, export, reporting
-from jaxflow.methods import registry
 
 
 def _dataset_help() -> str:
@@ -65,15 +64,14 @@ def main(argv):
     cli.fail(f"unexpected arguments: {' '.join(argv[1:])}")
   distributed.initialize_from_flags()
   config, model_fields = cli.run_settings(FLAGS.config)
-  chosen = registry.settings(FLAGS.method, FLAGS.steps, FLAGS.iters, FLAGS.objective,
-                             cli.method_fields(FLAGS.method))
+  ((method, chosen),) = cli.run_methods()  # jaxflow.methods.registry's, as predict's
   on_batch = []
   if FLAGS.save_flows:
     on_batch.append(export.FlowSaver(FLAGS.save_flows).add)
   if FLAGS.render_dir:
     on_batch.append(functools.partial(reporting.render_batch, FLAGS.render_dir))
   results = evaluator.evaluate_checkpoint(FLAGS.checkpoint, config, FLAGS.dataset, FLAGS.split,
-                                           model_fields, FLAGS.method, chosen, on_batch,
+                                           model_fields, method, chosen, on_batch,
                                            submission_dir=FLAGS.submission)
   if distributed.is_primary():
     reporting.report(results, FLAGS.json)

@@ -4,7 +4,7 @@ r"""Scene flow of your own point files (jaxflow-predict): the flow of every poin
         [--method.lidar.objects.max_yaw_deg_per_s=100 ...]
     python -m jaxflow.predict PC1 PC2 --out FLOW.npy [--method optimise|network|nsfp]
         [--checkpoint PATH] [--config CONFIG] [--iters 32] [--max_points 8192 | --full
-        [--corr_chunk 2048]] [--seed 0] [--steps N] [--objective exact|grid] [--render VIEW.png]
+        [--corr_chunk N]] [--seed 0] [--steps N] [--objective exact|grid] [--render VIEW.png]
         [--save_flows DIR] [--method.optimise.descent.steps=300 ...]
 
 From Python: `jaxflow.inference.predict_flow(pc1_Nx3, pc2_Mx3, method=...)`, the same defaults.
@@ -30,18 +30,21 @@ pace of its first steps) and a line every 10% of its steps (jaxflow.methods.opti
 
 Cloud size (jaxflow.inference): clouds above --max_points (config.eval.num_points, 8192) are sampled
 and the flow mapped back to every PC1 point; --full (or --max_points 0) uses whole clouds, the
-correlation built --corr_chunk rows at a time. --seed seeds the sampling.
+correlation built config.model.corr_chunk rows at a time (--corr_chunk N sets it; the checkpoint's
+0: as many as the clouds' sizes and the memory allow). --seed seeds the sampling.
 
-Raw sweeps (--lidar, jaxflow.lidar.sweep): the ground if the sweep has one (local planes along --up:
-z, the LiDAR convention; y for a camera frame such as KITTI's), the sensor's ego-motion (GICP of the
-two sweeps) and one rigid motion per moving object, sought in the whole sweep (beyond --max_range
-too); every point on no moving object, ground included, moves with the ego-motion. A note says what
-was found. The method runs on a camera's view (under half the azimuth: its non-ground points within
---max_range, 35 m, the others getting the rigid motion of its static part) and, on a 360-degree
-sweep, only when --method is given: its flow is then one more start of the fits (slow;
-benchmarks/REAL_SWEEPS.md). Otherwise no checkpoint is loaded. --noground_limits skips the up-axis
-check. --method.lidar.FIELD=V sets the pipeline's settings (jaxflow.lidar.settings; --print_config
-lists them with their units).
+Raw sweeps (--lidar, the spelling of --method lidar: jaxflow.methods.raw_sweeps,
+jaxflow.lidar.sweep): the ground if the sweep has one (local planes along --up: z, the LiDAR
+convention; y for a camera frame such as KITTI's), the sensor's ego-motion (GICP of the two sweeps)
+and one rigid motion per moving object, sought in the whole sweep (beyond --max_range too); every
+point on no moving object, ground included, moves with the ego-motion. A note says what was found.
+The lidar method runs a method of its own (--method.lidar.method: here --method's, default
+optimise) on a camera's view (under half the azimuth: its non-ground points within --max_range,
+35 m, the others getting the rigid motion of its static part) and, on a 360-degree sweep, only when
+--method is given (--method.lidar.start=True): its flow is then one more start of the fits (slow;
+benchmarks/REAL_SWEEPS.md). Otherwise no checkpoint is loaded. --max_range is
+--method.lidar.max_range; --noground_limits skips the up-axis check. --method.lidar.FIELD=V sets
+the pipeline's settings (jaxflow.lidar.settings; --print_config lists them with their units).
 
 Model. The checkpoint (default: the shipped jaxflow/checkpoints/jaxflow_synthetic/) carries its
 config: the model is built from it. --config (default configs/default.py:eval) only sets evaluation
@@ -87,10 +90,11 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
                        "z intensity; 5: nuScenes' x y z intensity ring; 3: x y z).")
   flags.DEFINE_string("render", None, "Also draw the flow of this pair: FILE.png a top view in --up "
                       "(speed relative to the ego-motion), FILE.html a 3D viewer (extra 'viewer').")
-  flags.DEFINE_bool("lidar", False, "Raw sweeps (jaxflow.lidar.sweep): the ground (local planes along "
-                    "--up), the sensor's ego-motion (GICP) and one rigid motion per moving "
-                    "object; the method runs on a camera's view (the points within --max_range "
-                    "off the ground), on a sweep only when --method is given (a start).")
+  flags.DEFINE_bool("lidar", False, "Raw sweeps, the lidar method (jaxflow.lidar.sweep): the "
+                    "ground (local planes along --up), the sensor's ego-motion (GICP) and one rigid "
+                    "motion per moving object; --method's method runs on a camera's view (the "
+                    "points within --max_range off the ground), on a sweep only when --method is "
+                    "given (a start). --method lidar is the same.")
   flags.DEFINE_bool("ground_limits", True, "Refuse an --up along which PC1 is not flat while "
                     "another axis is (a street scene is flat along its up axis) and, with --lidar, "
                     "one under which the sweep's largest plane stands upright near the origin; "
@@ -98,11 +102,10 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
   flags.DEFINE_enum("up", None, ["x", "y", "z"], "The clouds' up axis (z: LiDAR; y: the models' "
                     "frame): rotated into the models' frame, the flow back. Default: the axis PC1 "
                     "is flat along (a note says so), else z with --lidar, y without.")
-  flags.DEFINE_float("max_range", None, "--lidar: the horizontal distance (m) from the sensor "
-                     "within which the method sees the non-ground points (a camera's view, or "
-                     "--method's start on a sweep) and --render draws (default "
-                     "--method.lidar.max_range, 35; 0: all); a sweep's moving objects are sought "
-                     "beyond it too.")
+  flags.DEFINE_float("max_range", None, "--lidar: sets --method.lidar.max_range (default 35; 0: "
+                     "all), the horizontal distance (m) from the sensor within which the method "
+                     "sees the non-ground points (a camera's view, or --method's start on a sweep) "
+                     "and --render draws; a sweep's moving objects are sought beyond it too.")
   flags.DEFINE_string("submission", None, "--lidar: also write DIR/<log>/<ts>.feather (AV2).")
   flags.DEFINE_string("ego_out", None, "--lidar: also write the sensor's estimated motion here, "
                       "a 4 x 4 matrix as text (x2 = R x1 + t, in the clouds' axes): the flow minus "
@@ -117,6 +120,54 @@ def _used(name: str, n: int, max_points: int | None) -> str:
           + (", flow mapped back to every point" if name == "PC1" else ""))
 
 
+def _how(prediction, methods, num_iters: int, max_points: int | None) -> str:
+  """What ran, for the closing message; `methods`: cli.run_methods's (a raw-sweep method first)."""
+  name, chosen = methods[-1]
+  found = prediction.sweep
+  if found is not None and found.ego.start != "flow_fn":  # a 360-degree sweep: the pipeline's fits
+    return (f"ground, ego-motion and {len(found.objects.moved)} moving objects "
+            "(jaxflow.lidar.sweep)" + (f"; method {name}'s flow a start" if found.used_network
+                                       else "; no method run"))
+  how = "ground and far points removed; " if found is not None else ""
+  how += "; ".join(_used(cloud, n, max_points) for cloud, n in zip(("PC1", "PC2"), prediction.used))
+  method = registry.get(name)
+  if method.needs_network:
+    iters = (registry.network_asked(name, chosen) or (None,))[0] or num_iters
+    how += f"; {iters} network iterations" if method.refines_start else f"; {iters} iterations"
+  how += f"; method {name}" + (" at every point" if method.refines_start else "")
+  return how + (f" ({chosen.objective} objective)" if method.objectives else "")
+
+
+def _outputs(FLAGS, raw_sweeps: bool) -> pathlib.Path:
+  """--out's path, every output flag checked before the work."""
+  if not FLAGS.out and not FLAGS.save_flows and not FLAGS.submission:
+    raise ConfigError("give --out FLOW.npy, --save_flows DIR or --submission DIR")
+  if FLAGS.ego_out and not raw_sweeps:
+    raise ConfigError("--ego_out writes the sweep pipeline's ego-motion: it needs --lidar")
+  if FLAGS.out:
+    export.check_flow_path(pathlib.Path(FLAGS.out))
+  if FLAGS.render and FLAGS.render.endswith(".html"):  # its extra checked before the work
+    from jaxflow.viz import viewer  # pylint: disable=import-outside-toplevel
+    viewer.require_plotly()
+  return pathlib.Path(FLAGS.out or "")
+
+
+def _write(FLAGS, out, paths, pc1, rows1, prediction) -> list:
+  """Writes the flow (--out, --save_flows, --submission, --ego_out): the files written."""
+  flow_rows = inference.file_rows(prediction.flow, rows1)  # one row per row of PC1's file
+  written = []
+  if FLAGS.out:
+    export.save_flow(out, flow_rows)
+    written.append(out)
+  if FLAGS.save_flows:
+    written.append(export.FlowSaver(FLAGS.save_flows).save(",".join(paths), flow_rows))
+  written += submission.user_pair(FLAGS.submission, paths[0], pc1, prediction.flow,
+                                  prediction.sweep)
+  if FLAGS.ego_out:
+    written.append(export.save_motion(FLAGS.ego_out, prediction.sweep.motion))
+  return written
+
+
 def main(argv):
   from absl import flags  # pylint: disable=import-outside-toplevel
   from absl import logging as absl_logging  # pylint: disable=import-outside-toplevel
@@ -127,89 +178,40 @@ def main(argv):
   if len(argv) != 3:
     cli.fail(f"expected two point files PC1 PC2, got {len(argv) - 1} argument(s): "
              f"{' '.join(argv[1:]) or '(none)'}")
-  pc1_path, pc2_path = argv[1:]
+  paths = argv[1:]
   config, model_fields = cli.run_settings(FLAGS.config)
-  # --method lidar is --lidar: a camera's view then runs the default method.
-  lidar = FLAGS.lidar or FLAGS.method == "lidar"
-  name = inference.DEFAULT_METHOD if FLAGS.method == "lidar" else FLAGS.method
-  both = (name, "lidar") if lidar else (name,)  # --lidar --method X: X's settings and lidar's
-  method = name, FLAGS.steps, FLAGS.objective, FLAGS.iters, cli.method_fields(name, both)
-  # A wrong --method.X.FIELD is said now, not when (if) the predictor loads.
-  registry.settings(name, FLAGS.steps, FLAGS.iters, FLAGS.objective, method[-1])
-  sweep_settings = registry.settings("lidar", fields=cli.method_fields("lidar", both)) if (
-    lidar) else None
-  if not FLAGS.out and not FLAGS.save_flows and not FLAGS.submission:
-    raise ConfigError("give --out FLOW.npy, --save_flows DIR or --submission DIR")
-  if FLAGS.ego_out and not lidar:
-    raise ConfigError("--ego_out writes the sweep pipeline's ego-motion: it needs --lidar")
-  out = pathlib.Path(FLAGS.out or "")
-  if FLAGS.out:
-    export.check_flow_path(out)
-
-  if FLAGS.render and FLAGS.render.endswith(".html"):  # its extra checked before the work
-    from jaxflow.viz import viewer  # pylint: disable=import-outside-toplevel
-    viewer.require_plotly()
-  pc1, note1, rows1 = inference.read_cloud(pc1_path, FLAGS.columns)
-  pc2, note2, _ = inference.read_cloud(pc2_path, FLAGS.columns)
-  load = (FLAGS.checkpoint, config, model_fields, *method)
-  # --lidar: the method runs on a camera's view, or as a start of the fits when --method is given;
-  # a 360-degree sweep alone loads no checkpoint.
-  predictor = (inference.DeferredPredictor(*load) if lidar else inference.load_predictor(*load))
-  use_method = lidar and FLAGS["method"].present and FLAGS.method != "lidar"
+  methods = cli.run_methods()  # a wrong --method.X.FIELD is said now, not when (if) it loads
+  (name, chosen), *nested = methods
+  out = _outputs(FLAGS, registry.get(name).raw_sweeps)
+  pc1, note1, rows1 = inference.read_cloud(paths[0], FLAGS.columns)
+  pc2, note2, _ = inference.read_cloud(paths[1], FLAGS.columns)
+  # A raw-sweep method loads its method's checkpoint when that runs (a camera's view, a start).
+  predictor = inference.load_predictor(FLAGS.checkpoint, config, model_fields, name,
+                                       method_settings=chosen,
+                                       nested_settings=nested[0][1] if nested else None)
   max_points, num_iters = config.eval.num_points, config.eval.num_iters
-  prediction = predictor.predict(
-    pc1, pc2, num_iters=num_iters, max_points=max_points, full=not max_points,
-    corr_chunk=None, seed=config.eval.seed, names=(pc1_path, pc2_path), lidar=lidar,
-    up=FLAGS.up, max_range=FLAGS.max_range, ground_limits=FLAGS.ground_limits,
-    use_network=use_method, sweep_settings=sweep_settings)
-  up = prediction.up
+  prediction = predictor.predict(pc1, pc2, num_iters=num_iters, max_points=max_points,
+                                 full=not max_points, seed=config.eval.seed, names=tuple(paths),
+                                 up=FLAGS.up, ground_limits=FLAGS.ground_limits)
   if prediction.sweep is not None:
     print(f"note: {prediction.sweep.note()}", file=sys.stderr)
-  flow_Nx3 = prediction.flow
-  flow_rows = inference.file_rows(flow_Nx3, rows1)  # one row per row of PC1's file
-  written = []
-  if FLAGS.out:
-    export.save_flow(out, flow_rows)
-    written.append(out)
-  if FLAGS.save_flows:
-    written.append(export.FlowSaver(FLAGS.save_flows).save(f"{pc1_path},{pc2_path}", flow_rows))
-  written += submission.user_pair(FLAGS.submission, pc1_path, pc1, flow_Nx3, prediction.sweep)
-  if FLAGS.ego_out:
-    written.append(export.save_motion(FLAGS.ego_out, prediction.sweep.motion))
+  written = _write(FLAGS, out, paths, pc1, rows1, prediction)
   if note1:
     print(f"note: {note1}; {written[0]} has one row per PC1 row, in file order, NaN where the "
           "point was dropped", file=sys.stderr)
-  if note2:
-    print(f"note: {note2}", file=sys.stderr)
   warnings = [n for n in prediction.notes if n.startswith("PC1 has")]
-  for note in prediction.notes:
-    if note not in warnings:
+  for note in [note2, *(n for n in prediction.notes if n not in warnings)]:
+    if note:
       print(f"note: {note}", file=sys.stderr)
-  sweep_only = prediction.sweep is not None and prediction.sweep.ego.start != "flow_fn"
-  if sweep_only:  # a 360-degree sweep: jaxflow.lidar.sweep's fits, the method did not run
-    how = (f"ground, ego-motion and {len(prediction.sweep.objects.moved)} moving objects "
-           "(jaxflow.lidar.sweep)" + (f"; method {name}'s flow a start"
-                                 if prediction.sweep.used_network else "; no method run"))
-  else:
-    how = "ground and far points removed; " if lidar else ""
-    how += "; ".join(_used(cloud, n, max_points)
-                     for cloud, n in zip(("PC1", "PC2"), prediction.used))
-    if name == "optimise":
-      how += f"; {predictor.method_settings.start_iters or num_iters} network iterations"
-    elif name == "network":
-      how += f"; {num_iters} iterations"
-    how += f"; method {name}" + (" at every point" if name == "optimise" else "")
-    if name == "nsfp":
-      how += f" ({predictor.method_settings.objective} objective)"
-  source = predictor.name if not lidar or predictor.loaded else "no checkpoint loaded"
-  print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points ({how}; {source})",
+  print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points "
+        f"({_how(prediction, methods, num_iters, max_points)}; {predictor.source})",
         file=sys.stderr)
   for warning in warnings:
     print(f"warning: {warning}", file=sys.stderr)
   if FLAGS.render:
     from jaxflow.viz import viewer  # pylint: disable=import-outside-toplevel  (matplotlib: only here)
-    viewer.render(FLAGS.render, pc1, pc2, flow_Nx3, up=up, sweep=prediction.sweep,
-                  title=f"{pathlib.Path(pc1_path).name} -> {pathlib.Path(pc2_path).name}")
+    viewer.render(FLAGS.render, pc1, pc2, prediction.flow, up=prediction.up, sweep=prediction.sweep,
+                  title=f"{pathlib.Path(paths[0]).name} -> {pathlib.Path(paths[1]).name}")
     what = "3D viewer (jaxflow.viz.viewer)" if FLAGS.render.endswith(".html") else "top view"
     print(f"{FLAGS.render}: {what} of the pair and its flow", file=sys.stderr)
 

@@ -70,14 +70,14 @@ def test_lidar_on_too_few_points_gives_the_pipelines_own_minimum(tmp_path):
   """3. --lidar on 5 points: the pipeline's minimum in its words, before any checkpoint is read;
   that minimum is the ego-motion's own (one point fewer: its fit gives up)."""
   five = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
-  deferred = inference.DeferredPredictor(str(tmp_path / "no_checkpoint"), None, (), "optimise",
-                                         None, None)
+  deferred = inference.load_predictor(str(tmp_path / "no_checkpoint"), method="lidar",
+                                     method_fields={"method": "optimise"})  # predict --lidar's
   with pytest.raises(DataError) as caught:
-    deferred.predict(five, five, lidar=True, names=("a.npy", "b.npy"))
+    deferred.predict(five, five, names=("a.npy", "b.npy"))
   least = sweep.min_points()
   assert str(caught.value).startswith(f"a.npy: only 5 points; the raw-sweep pipeline")
   assert f"at least {least}" in str(caught.value) and "knn" not in str(caught.value)
-  assert not deferred.loaded
+  assert deferred.source == "no checkpoint loaded"
   rng = np.random.default_rng(1)
   for n, gives_up in ((least - 1, True), (least, False)):
     pc1 = np.c_[rng.uniform(-20, 20, (n, 2)), rng.uniform(-1.5, 1.0, n)].astype(np.float32)

@@ -266,8 +266,12 @@ def test_optimise_refines_every_point_of_a_sampled_cloud(workdir, files):
 
 def test_full_clouds_with_chunks_match_unchunked(predictor, pair):
   pc1, pc2, _ = pair
-  whole = predictor(pc1, pc2, num_iters=4, full=True, corr_chunk=0)
-  chunked = predictor(pc1, pc2, num_iters=4, full=True, corr_chunk=32)
+  assert predictor.model.corr_chunk == 0  # the checkpoint's: rows by the clouds' sizes
+  whole = predictor(pc1, pc2, num_iters=4, full=True)
+  # config.model.corr_chunk is the setting's one home (predict's --corr_chunk sets it).
+  chunked = inference.Predictor(predictor.model.clone(corr_chunk=32), predictor.params,
+                                predictor.config, predictor.refine, method=predictor.method)(
+    pc1, pc2, num_iters=4, full=True)
   np.testing.assert_allclose(chunked, whole, atol=1e-4)
   # Clouds within max_points are used whole, without resampling.
   np.testing.assert_array_equal(predictor(pc1, pc2, num_iters=4, max_points=N1), whole)

@@ -122,15 +122,18 @@ def test_a_camera_view_uses_the_given_flow_and_its_rigid_part():
 
 
 def test_a_sweep_loads_no_checkpoint_until_the_method_runs(tmp_path):
-  """predict --lidar's predictor (inference.DeferredPredictor): a 360-degree sweep never reads the
-  checkpoint (here a missing one, which would raise), a camera's view and an explicit method do."""
-  missing = tmp_path / "no_checkpoint"
-  deferred = inference.DeferredPredictor(str(missing), None, (), "network", None, None)
+  """predict --lidar's predictor (the lidar method running the network): a 360-degree sweep never
+  reads the checkpoint (here a missing one, which would raise), a camera's view and a start
+  (method.lidar.start) do."""
+  missing = str(tmp_path / "no_checkpoint")
+  lidar = lambda start: inference.load_predictor(
+    missing, method="lidar", method_fields={"method": "network", "start": start})
   s = ss.sweep_pair("val", 5, ss.Options(scale=0.1))
-  got = deferred.predict(s.pc1, s.pc2, lidar=True, up="z")
-  assert not deferred.loaded and got.flow.shape == s.pc1.shape
+  predictor = lidar(False)
+  got = predictor.predict(s.pc1, s.pc2, up="z")
+  assert predictor.source == "no checkpoint loaded" and got.flow.shape == s.pc1.shape
   front1 = np.abs(np.arctan2(s.pc1[:, 1], s.pc1[:, 0])) < np.radians(45)
   front2 = np.abs(np.arctan2(s.pc2[:, 1], s.pc2[:, 0])) < np.radians(45)
-  for pc1, pc2, use_network in ((s.pc1[front1], s.pc2[front2], False), (s.pc1, s.pc2, True)):
+  for pc1, pc2, start in ((s.pc1[front1], s.pc2[front2], False), (s.pc1, s.pc2, True)):
     with pytest.raises(CheckpointError, match="no_checkpoint: no such checkpoint"):  # load attempted
-      deferred.predict(pc1, pc2, lidar=True, up="z", use_network=use_network)
+      lidar(start).predict(pc1, pc2, up="z")

@@ -14,6 +14,7 @@ from jaxflow import inference
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.errors import DataError
 from jaxflow.lidar import ego, settings as lidar_settings, sweep
+from jaxflow.methods import raw_sweeps
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m.
@@ -63,10 +64,9 @@ def test_a_setting_changes_the_flow_through_the_api(pair, flows):
   # At 1000 Hz the same per-second limits are 0.1 deg and 3.5 cm a frame: fewer objects move.
   fast = sweep.raw_sweep_flow(None, pair.pc1, pair.pc2, settings=changed(1000.0))[1]
   assert len(fast.objects.moved) < len(info.objects.moved)
-  predictor = inference.Predictor(None, None, None, False, method="optimise")  # predict_flow's
-  settings = changed(**STILL)
-  api = inference.predict_flow(pair.pc1, pair.pc2, predictor=predictor, lidar=True, up="z",
-                               sweep_settings=settings)
+  settings = changed(**STILL)  # the pipeline's settings: the lidar method's, running no method
+  predictor = inference.load_predictor(method="lidar", method_settings=settings)
+  api = inference.predict_flow(pair.pc1, pair.pc2, predictor=predictor, up="z")
   assert settings.objects.max_yaw_deg_per_s == 0.0  # read, not changed
   np.testing.assert_array_equal(api, still)
 
@@ -140,7 +140,7 @@ def test_print_config_lists_the_sweep_settings_with_units(runs):
   stdout, stderr, rc = runs[1]["print_config"]
   assert rc == 0, stderr[-2000:]
   lines = [l for l in stdout.splitlines() if l.startswith("method.lidar.")]
-  fields = _field_paths(lidar_settings.Sweep())
+  fields = _field_paths(raw_sweeps.Lidar())  # the pipeline's and the method it runs
   assert len(lines) == len(fields) > 50
   assert any(l.startswith("config.eval.") for l in stdout.splitlines())  # and the first config
   assert "method.optimise.rigid_steps = 3" in stdout  # --lidar --method X: X's settings too

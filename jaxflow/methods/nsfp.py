@@ -30,4 +30,5 @@ def _build(network_for, settings):
 
 
 METHOD = Method("nsfp", "the NSFP baseline: an MLP optimised per pair, no checkpoint", up="y",
-                needs_network=False, defaults=_defaults, build=_build)
+                needs_network=False, defaults=_defaults, build=_build,
+                objectives=optimiser.OBJECTIVES, stops_early=True)

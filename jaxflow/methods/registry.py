@@ -4,13 +4,14 @@ use them (`--method`). Each is one module with a `METHOD` (jaxflow.methods.inter
 - `network`: the trained network alone (the paper's protocol; evaluate.py's default);
 - `nsfp`: the NSFP baseline, an MLP optimised per pair, no checkpoint (jaxflow.methods.nsfp);
 - `optimise`: the network's flow refined per pair (jaxflow.methods.optimise; predict's default);
-- `lidar`: raw LiDAR sweeps, ground, ego-motion and moving objects, no network
-  (jaxflow.methods.raw_sweeps; predict --lidar).
+- `lidar`: raw LiDAR sweeps, ground, ego-motion and moving objects, a method's flow of their points
+  only where its settings ask (jaxflow.methods.raw_sweeps; predict --lidar).
 
     fn = model_predict_fn(model, num_iters=32, refine=False, method="optimise")
     flow_BxNx3 = fn(params, pc1_BxNx3, pc2_BxMx3)      # in the method's frame (METHODS[...].up)
 
-A new method is a module with a METHOD, added to `_MODULES`.
+A new method is a module with a METHOD, passed to `register` (docs/contributing.md); callers ask
+its properties (interface.Method), never its name.
 """
 
 import dataclasses
@@ -23,10 +24,22 @@ from jaxflow.errors import ConfigError
 from jaxflow.methods import network_alone, nsfp, optimise, raw_sweeps
 from jaxflow.methods.interface import Method
 
-_MODULES = (network_alone, nsfp, optimise, raw_sweeps)
-REGISTRY: dict[str, Method] = {m.METHOD.name: m.METHOD for m in _MODULES}
-METHODS = tuple(REGISTRY)
-NEEDS_NETWORK = tuple(name for name, m in REGISTRY.items() if m.needs_network)
+REGISTRY: dict[str, Method] = {}
+METHODS: tuple = ()
+
+
+def register(method: Method):
+  """Adds a method under its name (a new one, or a name's replacement: a test's toy method)."""
+  global METHODS  # pylint: disable=global-statement  (the names --method offers, in order)
+  REGISTRY[method.name] = method
+  METHODS = tuple(REGISTRY)
+
+
+for _method in (network_alone.METHOD, nsfp.METHOD,
+                # optimise refines the network's flow at every point (its module's owner may say
+                # so in its METHOD; until then it is said here).
+                dataclasses.replace(optimise.METHOD, refines_start=True), raw_sweeps.METHOD):
+  register(_method)
 
 
 def get(method: str) -> Method:
@@ -43,14 +56,17 @@ def settings(method: str, steps: int | None = None, iters: int | None = None,
   (NSFP's) applied, then `fields`, {dotted field: value} at any depth (e.g. {"bodies.inlier":
   0.1}; the command line's --method.optimise.bodies.inlier=0.1; configfile.replace_settings)."""
   chosen_method = get(method)
-  if objective is not None and method != "nsfp":
-    raise ConfigError(f"--objective chooses NSFP's objective: it needs --method nsfp, not {method}")
+  if objective is not None and not chosen_method.objectives:
+    takes = [name for name, m in REGISTRY.items() if m.objectives]
+    raise ConfigError(f"--objective chooses the objective of {' or '.join(takes)}: it needs "
+                      f"--method {takes[0]}, not {method}")
   if steps is not None and steps < 0:
     raise ConfigError(f"--steps must be >= 0, got {steps}")
-  if fields and method == "network":
-    raise ConfigError(f"--method network has no --method.network.* settings ({', '.join(fields)}); "
-                      "its settings are the config's (--config.model.FIELD)")
   chosen = chosen_method.defaults(steps, iters, objective)
+  if fields and chosen is None:
+    raise ConfigError(f"--method {method} has no --method.{method}.* settings "
+                      f"({', '.join(fields)}); its settings are the config's "
+                      "(--config.model.FIELD)")
   return configfile.replace_settings(chosen, fields, f"method.{method}") if fields else chosen
 
 
@@ -86,15 +102,17 @@ def flow_fn(method: str, network=None, chosen=None, with_info: bool = False):
   them); `chosen`: the method's settings (default `settings(method)`). A jitted method's function
   is jitted (`.lower` compiles it ahead); the others are driven from Python between compiled
   stages: call them, do not jit them."""
-  return _flow_fn(method, lambda iters=None, candidates=None: network, chosen, with_info)
+  return build(method, lambda iters=None, candidates=None: network, chosen, with_info)
 
 
-def _flow_fn(method: str, make_network, chosen, with_info: bool):
+def build(method: str, network_for, chosen=None, with_info: bool = False):
+  """flow_fn's function from `network_for(iters=None, candidates=None)` (network_for's), which may
+  give None where no network is loaded."""
   chosen_method = get(method)
   chosen = settings(method) if chosen is None else chosen
-  if chosen_method.needs_network and make_network() is None:
+  if chosen_method.needs_network and network_for() is None:
     raise ConfigError(f"method {method!r} needs a network")
-  run = chosen_method.build(make_network, chosen)
+  run = chosen_method.build(network_for, chosen)
   if with_info:
     return run
   if chosen_method.jitted:
@@ -106,7 +124,34 @@ def model_predict_fn(model, num_iters: int, refine: bool, method: str = "network
                      method_settings=None, with_info: bool = False):
   """(params, pc1, pc2) -> flow B x N x 3 of `method` (flow_fn; model None for the methods without
   a network), with `with_info` (flow, info)."""
-  return _flow_fn(method, network_for(model, num_iters, refine), method_settings, with_info)
+  return build(method, network_for(model, num_iters, refine), method_settings, with_info)
+
+
+def network_asked(method: str, chosen) -> tuple | None:
+  """(iters, candidates) of the network `method` asks network_for for with its settings `chosen`
+  (None: the caller's), or None when it asks for none: what it starts from."""
+  asked = []
+
+  def network_for(iters=None, candidates=None):
+    asked.append((iters, candidates))
+    return lambda params, pc1, pc2: pc1  # never called: the method is built, not run
+
+  get(method).build(network_for, chosen)
+  return asked[0] if asked else None
+
+
+def describe_settings(method: str, chosen) -> str:
+  """--print_config's lines of a method's settings (configfile.describe_settings). Settings that
+  extend another block (lidar's: the pipeline's Sweep) list its fields with its comments."""
+  prefix = f"method.{method}"
+  lines = configfile.describe_settings(chosen, prefix).splitlines()
+  base = type(chosen).__mro__[1]
+  if dataclasses.is_dataclass(base):  # configfile reads the comments of a class's own source
+    inherited = configfile.describe_settings(base(**{
+      f.name: getattr(chosen, f.name) for f in dataclasses.fields(base)}), prefix).splitlines()
+    known = {line.split(" = ")[0] for line in inherited}
+    lines = inherited + [line for line in lines if line.split(" = ")[0] not in known]
+  return "\n".join(lines)
 
 
 def settings_dict(chosen) -> dict | None:
@@ -128,7 +173,7 @@ def convergence_note(method: str, info) -> str | None:
   finite = np.asarray(info["finite"])
   if not finite.all():
     return f"{method}: the optimisation diverged (non-finite flow); the starting flow is returned"
-  if method == "nsfp" and not np.asarray(info["stopped"]).all():
+  if get(method).stops_early and not np.asarray(info["stopped"]).all():
     return (f"{method}: early stopping did not fire within {int(np.max(info['steps']))} steps; "
             "the flow of the lowest loss is returned but may not have converged")
   return None
@@ -142,7 +187,7 @@ def evaluation_note(method: str, convergence: dict | None) -> str | None:
   if convergence["non_finite"]:
     notes.append(f"{convergence['non_finite']} of {convergence['pairs']} pairs diverged "
                  "(non-finite flow; their starting flow was kept)")
-  if method == "nsfp" and convergence["early_stopped"] < convergence["pairs"]:
+  if get(method).stops_early and convergence["early_stopped"] < convergence["pairs"]:
     running = convergence["pairs"] - convergence["early_stopped"]
     notes.append(f"early stopping did not fire on {running} of {convergence['pairs']} pairs "
                  "(their lowest-loss flow was used)")
