@@ -70,6 +70,7 @@ def test_truncated_and_corrupt_files_name_the_file(tmp_path):
 
 class _Broken(Dataset):
   """Three pairs; pair 1 raises DataError; checks the final name never exists during conversion."""
+  up = "y"
 
   def __init__(self, out):
     self.out, self.name, self.split = pathlib.Path(out), "broken", "test"

@@ -252,5 +252,6 @@ def test_hdf5_round_trip_of_every_reader(tmp_path):
       convert(spec, split, out, progress=False)
       source, h5 = open_dataset(spec, split), open_dataset(f"h5:{out}")
       assert len(source) == len(h5) > 0 and h5.source == spec and spec in h5.describe()
+      assert h5.up == source.up  # the file's clouds are in its source's frame
       for i in range(len(source)):
         _assert_same(h5[i], source[i])

@@ -1,4 +1,5 @@
-"""jaxflow.geometry.frames: the frame of each reader and of the models, and the rotations between them.
+"""jaxflow.geometry.frames: the models' frame and the rotations between frames; each reader's up axis
+(`Dataset.up`) against the frame its clouds are really in.
 
 Handedness: a scene turning left (counter-clockwise seen from above, a right-handed rotation about
 up) is written in each reader's stored layout from the published definition of that layout, read
@@ -60,7 +61,7 @@ def test_rotations_are_proper_and_invert():
     p = np.random.default_rng(0).normal(size=(5, 3))
     np.testing.assert_allclose(frames.to_model(p, up), p @ r.T)
     np.testing.assert_allclose(frames.from_model(frames.to_model(p, up), up), p)
-  # z up (x forward, y left, z up) -> (x left, y up, z forward): OpenSceneFlow's TO_CAMERA order.
+  # z up (x forward, y left, z up) -> (x left, y up, z forward): opensf's frame=camera order.
   np.testing.assert_array_equal(frames.to_model(np.array([[1.0, 2, 3]]), "z"), [[2.0, 3, 1]])
   np.testing.assert_array_equal(frames.rotation("y"), np.eye(3))
 
@@ -98,8 +99,9 @@ def test_ft3d_reader_keeps_a_left_turn(tmp_path):
     d = -f / p[:, 2]  # the subset's disparities are negative (its stored z < 0)
     stored = np.c_[(u - cx) * -1.0 / d, (v - cy) / d, -1.0 * -f / d]
     np.save(folder / f"{name}.npy", stored.astype(np.float32))
-  pair = open_dataset(f"ft3d:{tmp_path / 'ft3d'}", "test")[0]
-  assert frames.READERS["ft3d"][1] == "y"
+  ds = open_dataset(f"ft3d:{tmp_path / 'ft3d'}", "test")
+  pair = ds[0]
+  assert ds.up == "y"
   _check_turns_left(pair, 1, "ft3d")
   left = pc1[:, 0] < -1  # physically left of the camera: x > 0 in the model frame (x left)
   assert (pair.pc1[left, 0] > 0).all() and (pair.pc1[:, 2] > 0).all()
@@ -114,8 +116,9 @@ def test_kitti_reader_keeps_a_left_turn(tmp_path):
     np.save(folder / f"{name}.npy", (p * [-1, -1, 1]).astype(np.float32))
   with warnings.catch_warnings():
     warnings.simplefilter("ignore")  # 1 of the 142 benchmark frames
-    pair = open_dataset(f"kitti:{tmp_path / 'kitti'}", "test")[0]
-  assert frames.READERS["kitti"][1] == "y"
+    ds = open_dataset(f"kitti:{tmp_path / 'kitti'}", "test")
+  pair = ds[0]
+  assert ds.up == "y"
   _check_turns_left(pair, 1, "kitti")
   left = pc1[:, 0] < -1
   assert (pair.pc1[left, 0] > 0).all() and (pair.pc1[:, 2] > 0).all()
@@ -144,20 +147,20 @@ def test_opensf_reader_keeps_a_left_turn(tmp_path, frame, up):
   to_ego = lambda p: np.c_[p[:, 2], -p[:, 0], -p[:, 1]]  # OpenCV (right, down, forward) -> ego
   _write_opensf(tmp_path / "av2", to_ego(pc1), to_ego(pc2))
   ds = open_dataset(f"opensf:{tmp_path / 'av2'},frame={frame},lidar=ego", "val")
-  assert frames.dataset_up(ds) == "xyz"[up] == frames.READERS[f"opensf,frame={frame}"][1]
+  assert ds.up == "xyz"[up]
   _check_turns_left(ds[0], up, f"opensf frame={frame}")
   from jaxflow.data import convert  # pylint: disable=import-outside-toplevel
   convert.convert(f"opensf:{tmp_path / 'av2'},frame={frame},lidar=ego", "val",
                   tmp_path / "pairs.h5")
   converted = open_dataset(f"h5:{tmp_path / 'pairs.h5'}", "val")
-  assert frames.dataset_up(converted) == "xyz"[up]  # the frame it was converted from
+  assert converted.up == "xyz"[up]  # the frame it was converted from
   _check_turns_left(converted[0], up, f"h5 of opensf frame={frame}")
 
 
 def test_synthetic_lidar_is_in_the_model_frame():
   """The synthetic driving pairs: ground under the sensor along -y, the road ahead along +z."""
   pair = open_dataset("synthetic_lidar:1", "test")[0]
-  assert frames.dataset_up(open_dataset("synthetic_lidar:1", "test")) == "y"
+  assert open_dataset("synthetic_lidar:1", "test").up == "y"
   assert np.median(pair.pc1[:, 2]) > 5 and np.percentile(pair.pc1[:, 1], 2) < -1.0
 
 

@@ -88,12 +88,10 @@ def test_registered_as_a_dataset_with_three_way_labels():
 
 
 def test_the_dataset_says_it_is_z_up_and_carries_the_av2_labels():
-  """evaluate.py rotates synthetic_sweep's z-up clouds into the models' frame (frames.dataset_up)
-  and reports the official breakdown from its categories (the sensor's x, y as the ego's)."""
-  from jaxflow.geometry import frames  # pylint: disable=import-outside-toplevel
-
+  """evaluate.py rotates synthetic_sweep's z-up clouds into the models' frame (`Dataset.up`) and
+  reports the official breakdown from its categories (the sensor's x, y as the ego's)."""
   ds = open_dataset("synthetic_sweep:1", "test")
-  assert frames.dataset_up(ds) == "z"
+  assert ds.up == "z"
   pair, truth = ds[0], ss.sweep_pair("test", 0)
   np.testing.assert_array_equal(pair.category, truth.category)
   np.testing.assert_array_equal(pair.ego_xy, truth.pc1[:, :2])

@@ -36,7 +36,8 @@ def convert(spec: str, split: str | None, out, limit: int | None = None, skip_br
   skipped = []
   try:
     stored_split = getattr(dataset, "split", None) or split or ""
-    with H5Writer(tmp, source=spec, split=stored_split, description=dataset.describe()) as writer:
+    with H5Writer(tmp, source=spec, split=stored_split, description=dataset.describe(),
+                  up=dataset.up) as writer:
       for i in tqdm.trange(count, desc=f"converting {dataset.name}", unit="pair", disable=not progress):
         try:
           writer.append(dataset[i])

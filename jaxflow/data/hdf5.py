@@ -7,7 +7,8 @@ two small offset arrays instead of walking thousands of groups):
   names  (P) str
   rigid_flow (sum N) x 3 float32, foreground (sum N) bool: only when the source's pairs carry
     ego-motion flow and labels (`Pair.has_labels`, e.g. opensf), for the three-way EPE
-  attrs: format, version, source (the spec converted), split, description, count
+  attrs: format, version, source (the spec converted), split, description, count, up (the source
+    reader's `Dataset.up`: the file's clouds are in its frame)
 """
 
 import pathlib
@@ -25,11 +26,11 @@ _CHUNK_ROWS = 1 << 15
 class H5Writer:
   """Appends Pairs to a new HDF5 file; `close()` writes the index. Use as a context manager."""
 
-  def __init__(self, path, source: str, split: str, description: str = ""):
+  def __init__(self, path, source: str, split: str, description: str = "", up: str = "y"):
     self.path = pathlib.Path(path)
     self.file = h5py.File(self.path, "w")
     self.file.attrs.update(format=FORMAT, version=VERSION, source=source, split=split or "",
-                           description=description)
+                           description=description, up=up)
     for key, cols, dtype in (("pc1", 3, "f4"), ("flow", 3, "f4"), ("pc2", 3, "f4"), ("mask", 0, "?")):
       self._create(key, cols, dtype)
     self.offsets1, self.offsets2, self.names = [0], [0], []
@@ -127,6 +128,7 @@ class H5Dataset(Dataset):
     if not sizes_ok:
       raise DataError(self.path, "offsets do not match the stored arrays (truncated or corrupt)")
     self.source, self.split = str(attrs.get("source", "")), str(attrs.get("split", ""))
+    self.up = str(attrs["up"]) if "up" in attrs else _unrecorded_up(self.source)
     if split and self.split and split != self.split:
       raise DataError(self.path, f"holds split {self.split!r} of {self.source}, asked for {split!r}")
 
@@ -152,6 +154,14 @@ class H5Dataset(Dataset):
 
   def __reduce__(self):  # worker processes reopen the file
     return H5Dataset, self._args
+
+
+def _unrecorded_up(source: str) -> str:
+  """The up axis of a file converted before `up` was recorded, as it was read then: z for opensf's
+  ego frame (its default), y (the models' frame) for every other source."""
+  if not source.startswith("opensf:"):
+    return "y"
+  return "y" if "frame=camera" in source.split(",") else "z"
 
 
 register("h5", lambda path, split: H5Dataset(path, split), needs_root=True)

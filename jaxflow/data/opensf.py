@@ -17,7 +17,7 @@ pc1 = lidar(t0)[:, :3], pc2 = lidar(t1)[:, :3]. Options after the folder (", key
   frame=ego (default, as stored: x forward, y left, z up) | camera: the clouds and flows rotated
     into the models' frame (x left, y up, z forward: (x, y, z) -> (y, z, x), a proper rotation;
     jaxflow.geometry.frames); evaluation rotates ego clouds into it before the model and the flow
-    back after (frames.dataset_up), so either gives the same flow; the metrics do not change under
+    back after (`Dataset.up`), so either gives the same flow; the metrics do not change under
     it.
   region=disc (default: the cuts above) | challenge: the Argoverse 2 challenge's points, pc1 =
     the frame's `eval_mask` points in file order where the file has them (then only the frames
@@ -54,6 +54,7 @@ import numpy as np
 from jaxflow.data.pointfiles import MIN_POINTS
 from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.errors import DataError
+from jaxflow.geometry import frames
 
 DEFAULTS = {"ground": "remove", "max_range": 35.0, "frame": "ego", "region": "disc",
             "lidar": "auto", "calibration": ""}
@@ -61,7 +62,6 @@ CHOICES = {"ground": ("remove", "keep"), "frame": ("ego", "camera"),
            "region": ("disc", "challenge", "sweep"), "lidar": ("auto", "ego", "sensor")}
 CHALLENGE_BOX_M = 50.0  # the challenge's points: non-ground, |x|, |y| <= 50 m (ego frame)
 DECISIVE_ROTATION = 5e-4  # rad (0.03 degrees): an ego rotation that tells the lidar frames apart
-TO_CAMERA = [1, 2, 0]  # ego (x forward, y left, z up) -> (x left, y up, z forward): frames
 
 
 def parse_spec(arg: str) -> tuple[str, dict]:
@@ -109,6 +109,7 @@ class OpenSceneFlow(Dataset):
     self.split = split or "train"
     self.options = {**DEFAULTS, **options}
     self.name = f"opensf:{self.root}"
+    self.up = "z" if self.options["frame"] == "ego" else "y"  # the ego frame's, or the models'
     folder = self.root / self.split
     if not folder.is_dir():
       raise DataError(folder, f"missing split folder (expected {self.root}/{self.split}/<log>.h5)")
@@ -154,7 +155,7 @@ class OpenSceneFlow(Dataset):
     arrays = {"pc1": pc1, "pc2": frame1["lidar"][keep2], "flow": frame0["flow"][keep1],
               "rigid_flow": rigid}
     if self.options["frame"] == "camera":
-      arrays = {k: np.ascontiguousarray(v[:, TO_CAMERA]) for k, v in arrays.items()}
+      arrays = {k: frames.to_model(v, "z") for k, v in arrays.items()}
     mask = frame0["flow_is_valid"][keep1]
     if "eval_mask" in frame0:
       mask = mask & frame0["eval_mask"][keep1]

@@ -111,11 +111,13 @@ class FT3D(Dataset):
 
   x and z negated on load (stored x right, y up, z backward -> x left, y up, z forward: a rotation
   about y, jaxflow.geometry.frames), pc1.z < 35 and pc2.z < 35 kept, flow = pc2 - pc1, mask all
-  True. Splits (see `ft3d_split_positions`): "train" (4910), "val" (2000), "train_all" (17640) from
+  True. The stored frame: HPLFlowNet's pixel2pc turns FlyingThings3D's (negative) disparities d
+  into x = (u - cx) / |d|, y = -(v - cy) / |d|, z = -f / |d| (u right, v down in the image). Splits (see `ft3d_split_positions`): "train" (4910), "val" (2000), "train_all" (17640) from
   train/; "test" is val/ (3824). With fewer than 19640 train/ folders the split rules use each
   folder's number as its position (the full set is numbered 0 .. 19639), and describe() says the
   split is partial.
   """
+  up = "y"  # x left, y up, z forward: the models' frame
 
   def __init__(self, root, split: str | None = None):
     self.root = _check_root(root)
@@ -165,11 +167,13 @@ class FT3D(Dataset):
 class KITTI(Dataset):
   """HPLFlowNet KITTI Scene Flow 2015: ROOT/NNNNNN/pc1.npy, pc2.npy, the 142 benchmark frames only.
 
-  No flip (stored x left, y up, z forward: the camera's x and y negated, jaxflow.geometry.frames);
+  No flip (stored x left, y up, z forward: HPLFlowNet's files hold the camera's x right, y down,
+  z forward with x and y negated, a rotation about z, jaxflow.geometry.frames);
   ground removed (pc1.y and pc2.y both < -1.4); pc1.z < 35 and pc2.z < 35 kept; flow = pc2 - pc1;
   mask all True. Folders outside the benchmark list are ignored; a root with only some benchmark
   frames is read with a warning, and describe() says how many.
   """
+  up = "y"  # x left, y up, z forward: the models' frame, ground near y = -1.6
 
   def __init__(self, root, split: str | None = None):
     self.root = _check_root(root)
@@ -254,6 +258,7 @@ class Argoverse(Dataset):
   integer index arrays into pair i's pc1 and pc2 (after any non-finite rows are dropped), for
   NSFP-style sampling (80% of a sampled cloud from tracked points).
   """
+  up = "y"  # as stored, not rotated: the models' frame assumed
 
   def __init__(self, root, split: str | None = None):
     self.root = _check_root(root)
@@ -299,6 +304,7 @@ class FlowNet3D(Dataset):
   points); files TRAIN_*.npz and TEST_*.npz select the split ("train" by default). KITTIo:
   pos1, pos2, gt (mask all True); all *.npz of the root form the one (test) split.
   """
+  up = "y"  # as stored, not rotated: the models' frame assumed
 
   def __init__(self, root, split: str | None = None):
     self.root = _check_root(root)
@@ -349,6 +355,7 @@ class FlowNet3D(Dataset):
 
 class Files(Dataset):
   """Two point files a user has, for inference: flow is unknown (zeros) and mask all False."""
+  up = "y"  # as stored, not rotated: the models' frame assumed (predict's --up reads others)
 
   def __init__(self, pc1_path, pc2_path):
     self.paths = (pathlib.Path(pc1_path).expanduser(), pathlib.Path(pc2_path).expanduser())

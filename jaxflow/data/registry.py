@@ -57,8 +57,14 @@ class Pair:
 
 
 class Dataset:
-  """A sequence of Pairs: len(ds), ds[i], iteration, ds.name and ds.describe()."""
+  """A sequence of Pairs: len(ds), ds[i], iteration, ds.name, ds.up and ds.describe().
+
+  `up` is the up axis of the clouds, "x", "y" or "z" (jaxflow.geometry.frames), and every reader
+  says it: "y" is the models' frame (x left, y up, z forward), "z" a LiDAR's (x forward, y left,
+  z up). Evaluation rotates the clouds into a method's frame and the flow back by it.
+  """
   name: str = ""
+  up: str  # set by each reader (a class attribute, or in __init__ when an option decides it)
 
   def __len__(self) -> int:
     raise NotImplementedError

@@ -637,6 +637,7 @@ def synthetic_pair(kind: str, split: str, index: int) -> Pair:
 
 class Synthetic(Dataset):
   """`count` synthetic pairs of one kind and split, generated on demand (nothing cached)."""
+  up = "y"  # generated in the models' frame: x left, y up, z forward
 
   def __init__(self, kind: str, split: str, count: int):
     self.kind, self.split, self.count = kind, split, count

@@ -187,8 +187,8 @@ def evaluate(model, params, dataset, *, num_points: int | None, batch_size: int,
   chosen = registry.get(method)
   predict = registry.model_predict_fn(model, num_iters, refine, method, method_settings,
                                       with_info=not chosen.jitted)
-  # The clouds rotated into the method's frame and the flow back (opensf's ego frame: z up).
-  up = frames.dataset_up(dataset)
+  # The clouds rotated into the method's frame and the flow back (the reader says its up axis).
+  up = dataset.up
   predict = frames.in_frame(predict, up, chosen.up, jitted=chosen.jitted)
   batches, total = _process_batches(dataset, batch_size, num_points, seed)
   batches = ({**batch, "up": up} for batch in batches)  # the clouds' frame, for the pictures

@@ -23,6 +23,7 @@ import numpy as np
 
 from jaxflow.errors import ConfigError
 from jaxflow.evaluation import av2_eval
+from jaxflow.geometry import frames
 
 FLOW_COLUMNS = ("flow_tx_m", "flow_ty_m", "flow_tz_m")
 
@@ -91,10 +92,9 @@ class SubmissionWriter:
         raise ConfigError(f"--submission {self.folder}: {f} already holds .feather files; give a "
                           "new folder or empty it")
     options = getattr(dataset, "options", None)
-    self.to_ego = None  # columns that bring a flow of the reader's frame back to the ego frame
-    if options is not None and options.get("frame") == "camera":
-      from jaxflow.data.opensf import TO_CAMERA  # pylint: disable=import-outside-toplevel
-      self.to_ego = np.argsort(TO_CAMERA)
+    up = "z" if dataset is None else dataset.up
+    # columns that bring a flow of the reader's frame back to the ego frame (z up)
+    self.to_ego = None if up == "z" else frames.permutation(up, "z")
     self.note = None
     if options is None or options.get("region") != "challenge":
       self.note = ("--submission: the rows are the points evaluated, not the challenge's eval-mask "

@@ -1,36 +1,22 @@
-"""The coordinate frames of jaxflow: the models', each reader's, and the rotations between them.
+"""The coordinate frames of jaxflow: the models', a sensor's by its up axis, and the rotations
+between them.
 
     pc_model_Nx3 = to_model(pc_Nx3, up="z")          # a z-up sweep as the network wants it
     flow_Nx3 = from_model(flow_model_Nx3, up="z")    # and its flow back
     flow_fn = in_model_frame(flow_fn, up="z")        # the same around any (pc1, pc2) -> flow
     predict = in_frame(predict, up="y", to="z")      # a batch method working z up, on y-up clouds
-    up = dataset_up(dataset)                         # the up axis of a reader's clouds
     up, note = resolve_up(pc1_Nx3, None, "y", "pc1")  # a user's cloud: the axis it is flat along
 
-THE MODEL FRAME. Every shipped model was trained in the benchmark readers' camera frame: x left,
-y up, z forward, metres, right-handed (x cross y = z). It is not "x right": that labelling of the
-same axes is a mirror image (det -1), and a scene read in it turns the other way.
+THE MODEL FRAME. Every shipped model was trained in the frame x left, y up, z forward, metres,
+right-handed (x cross y = z). It is not "x right": that labelling of the same axes is a mirror
+image (det -1), and a scene read in it turns the other way. Each dataset reader says the up axis
+of its clouds (`Dataset.up`, jaxflow.data.registry; its docstring, how it gets there).
 
-Why x is left (HPLFlowNet's stored files, the readers' inputs):
-- FT3D (`ft3d`): HPLFlowNet's pixel2pc turns FlyingThings3D's (negative) disparities d into
-  x = (u - cx) / |d|, y = -(v - cy) / |d|, z = -f / |d| (u right, v down in the image): x right,
-  y up, z backward. The reader negates x and z (a 180 degree rotation about y, det +1):
-  x left, y up, z forward.
-- KITTI (`kitti`): HPLFlowNet's KITTI files hold the camera's (x right, y down, z forward) with x
-  and y negated (a 180 degree rotation about z): x left, y up, z forward, ground near y = -1.6.
-- synthetic_things, synthetic_lidar (jaxflow.data.synthetic): generated in the model frame.
-- synthetic_sweep (jaxflow.data.synthetic_sweep): raw sweeps, z up (x forward, y left).
-- opensf (OpenSceneFlow's Argoverse 2 and other LiDAR logs): `frame=ego` (its default) the ego
-  frame as stored, x forward, y left, z up; `frame=camera` rotated into the model frame.
-- h5 (jaxflow.data.convert): the frame of the reader it was converted from (its `source`).
-- argoverse (NSFP's npz), flownet3d (FlowNet3D's npz), files: as stored; jaxflow does not rotate
-  them (`dataset_up` says "y": the model frame is assumed).
-
-SENSOR CONVENTIONS BY UP AXIS (predict's --up). A sensor frame is named by its up axis, and the
-other two follow cyclically, so that every one is right-handed: up axis k, forward k + 1, left
-k + 2 (mod 3).
-- up z: x forward, y left, z up (LiDAR, ISO 8855 vehicles, the Argoverse 2 ego frame);
-- up y: z forward, x left, y up: the model frame itself (KITTI's and FT3D's readers);
+SENSOR CONVENTIONS BY UP AXIS (predict's --up, `Dataset.up`). A sensor frame is named by its up
+axis, and the other two follow cyclically, so that every one is right-handed: up axis k, forward
+k + 1, left k + 2 (mod 3).
+- up z: x forward, y left, z up (LiDAR, ISO 8855 vehicles);
+- up y: z forward, x left, y up: the model frame itself;
 - up x: y forward, z left, x up.
 The rotation into the model frame takes (left, up, forward) to (x, y, z): a cyclic permutation of
 the axes, so a proper rotation (det +1, never a mirror). Flows are vectors: they turn the same way.
@@ -44,18 +30,6 @@ MODEL_UP = "y"  # the models' up axis (x left, y up, z forward)
 UP_AXES = ("x", "y", "z")
 SENSOR_AXES = {"z": "x forward, y left, z up", "y": "x left, y up, z forward (the model frame)",
                "x": "x up, y forward, z left"}
-
-# Each reader's frame: (what its clouds are in, the up axis of that frame).
-READERS = {
-  "ft3d": ("x left, y up, z forward (HPLFlowNet's x right, y up, z backward; x, z negated)", "y"),
-  "kitti": ("x left, y up, z forward (HPLFlowNet's camera frame, x and y negated)", "y"),
-  "synthetic_things": ("x left, y up, z forward (generated in the model frame)", "y"),
-  "synthetic_lidar": ("x left, y up, z forward (generated in the model frame)", "y"),
-  "opensf,frame=ego": ("x forward, y left, z up (the ego frame as stored)", "z"),
-  "synthetic_sweep": ("x forward, y left, z up (raw 360-degree sweeps, the sensor at the origin)",
-                      "z"),
-  "opensf,frame=camera": ("x left, y up, z forward (the ego frame rotated by to_model)", "y"),
-}
 
 
 def up_index(up: str) -> int:
@@ -123,8 +97,8 @@ def in_frame(predict, up: str, to: str = MODEL_UP, jitted: bool = False):
 
 
 # A street scene is flat along its up axis: a LiDAR sweep spans metres in height and tens of metres
-# across (real AV2 and KITTI sweeps, KITTI's camera-frame clouds: 0.05-0.14 of the next smallest
-# spread), FlyingThings3D's scenes are not (0.42-0.95 over its pairs).
+# across (real street sweeps, raw and from stereo: 0.05-0.14 of the next smallest spread); scenes of
+# objects flying before a camera are not (0.42-0.95 over a benchmark's pairs).
 FLAT_RATIO = 0.25
 
 
@@ -164,20 +138,6 @@ def resolve_up(points_Nx3, up: str | None, default: str, name: str,
 def _spreads(spreads) -> str:
   spread = ", ".join(f"{a} {s:.1f} m" for a, s in zip(UP_AXES, spreads))
   return spread + " from 2nd to 98th percentile"
-
-
-def dataset_up(dataset) -> str:
-  """The up axis of a dataset's clouds: "z" for opensf's ego frame (also converted to h5), "y" (the
-  model frame) for the other readers (see READERS)."""
-  name = str(getattr(dataset, "name", ""))
-  if name.startswith("synthetic_sweep:"):
-    return "z"
-  if name.startswith("opensf:"):
-    return "z" if getattr(dataset, "options", {}).get("frame", "ego") == "ego" else "y"
-  source = str(getattr(dataset, "source", ""))  # h5: the spec it was converted from
-  if name.startswith("h5:") and source.startswith("opensf:"):
-    return "y" if "frame=camera" in source.split(",") else "z"
-  return MODEL_UP
 
 
 def describe(up: str) -> str:
