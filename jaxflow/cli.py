@@ -220,6 +220,7 @@ def run_methods() -> list[tuple[str, object]]:
   chosen = registry.settings(raw, fields={**fields, **method_fields(raw, tuple(names))})
   if chosen.method is None:
     return [(raw, chosen)]
+  registry.nested(chosen.method)
   return [(raw, chosen), (chosen.method, registry.settings(
     chosen.method, given.steps, given.iters, given.objective,
     method_fields(chosen.method, (raw, nested))))]

@@ -187,7 +187,8 @@ class Predictor:
                        for n in names)
     inner = []  # the Prediction of the kept points
     flow_fn = None if self.nested is None else raw_sweeps.in_frame(
-      _estimate(self.nested, kept_names, sampling, inner), up, registry.get(settings.method).up)
+      _estimate(self.nested, kept_names, sampling, inner), up,
+      registry.nested(settings.method).up)
     flow, info = raw_sweeps.pair_flow(flow_fn, *clouds, settings, up, names, ground_limits)
     notes = inner[-1].notes if inner else tuple(n for n in [lopsided(*info.kept)] if n)
     notes = (up_note, *notes) if up_note else notes
@@ -307,6 +308,7 @@ def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = N
     chosen = method_settings or registry.settings(method, fields=method_fields)
     nested = raw_sweeps.settings_of(chosen).method
     if nested is not None:  # its settings' errors now, its checkpoint when it runs
+      registry.nested(nested)
       settings = nested_settings or registry.settings(nested, steps, iters, objective)
       nested = _Deferred(functools.partial(load_predictor, checkpoint, config, model_fields,
                                            nested, method_settings=settings))

@@ -29,10 +29,6 @@ class Lidar(Sweep):
 
   def __post_init__(self):
     self.pipeline()  # the pipeline's own checks (jaxflow.lidar.settings)
-    if self.method is not None:
-      from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel  (a cycle)
-      if registry.get(self.method).raw_sweeps:
-        raise ValueError(f"lidar method: {self.method!r} reads raw sweeps itself, not their points")
 
   def pipeline(self) -> Sweep:
     """The pipeline's settings alone."""
@@ -66,25 +62,30 @@ def in_frame(flow_fn, up: str, method_up: str):
     np.asarray(flow_fn(turn(pc1_Nx3), turn(pc2_Mx3)))[:, back])
 
 
-def _build(network_for, settings):
-  settings = settings_of(settings)
-  method = None
+def builder(nested):
+  """The lidar method's build; `nested(name, network_for)` -> (run of that method, flow only; its
+  up axis): jaxflow.methods.registry's, which knows the other methods."""
 
-  def run(params, pc1_BxNx3, pc2_BxMx3):
-    nonlocal method
-    flow_fn = None
-    if settings.method is not None:  # its network (evaluate.py: only one it loaded) built once
-      from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
-      method = method or registry.build(settings.method, network_for)
-      flow_fn = in_frame(lambda a, b: method(params, a[None], b[None])[0], "z",
-                         registry.get(settings.method).up)
-    flows = [pair_flow(flow_fn, a, b, settings)[0]
-             for a, b in zip(np.asarray(pc1_BxNx3), np.asarray(pc2_BxMx3))]
-    return jnp.asarray(np.stack(flows)), None
+  def build(network_for, settings):
+    settings = settings_of(settings)
+    method = None
 
-  return run
+    def run(params, pc1_BxNx3, pc2_BxMx3):
+      nonlocal method
+      flow_fn = None
+      if settings.method is not None:  # its network (evaluate.py: only one it loaded) built once
+        method = method or nested(settings.method, network_for)
+        flow_fn = in_frame(lambda a, b: method[0](params, a[None], b[None])[0], "z", method[1])
+      flows = [pair_flow(flow_fn, a, b, settings)[0]
+               for a, b in zip(np.asarray(pc1_BxNx3), np.asarray(pc2_BxMx3))]
+      return jnp.asarray(np.stack(flows)), None
+
+    return run
+
+  return build
 
 
+# Its build runs no other method: jaxflow.methods.registry registers it with builder(its lookup).
 METHOD = Method("lidar", "raw LiDAR sweeps: ground, ego-motion and moving objects, no network",
                 up="z", needs_network=False, defaults=lambda steps, iters, objective: Lidar(),
-                build=_build, compiles=False, raw_sweeps=True)
+                build=builder(None), compiles=False, raw_sweeps=True)

@@ -35,10 +35,24 @@ def register(method: Method):
   METHODS = tuple(REGISTRY)
 
 
+def nested(method: str) -> Method:
+  """The method a raw-sweep method runs on the sweeps' points (method.lidar.method)."""
+  chosen = get(method)
+  if chosen.raw_sweeps:
+    raise ConfigError(f"method.lidar.method: {method!r} reads raw sweeps itself, not their points")
+  return chosen
+
+
+def _nested_run(method: str, network_for):
+  return build(method, network_for), nested(method).up
+
+
 for _method in (network_alone.METHOD, nsfp.METHOD,
                 # optimise refines the network's flow at every point (its module's owner may say
                 # so in its METHOD; until then it is said here).
-                dataclasses.replace(optimise.METHOD, refines_start=True), raw_sweeps.METHOD):
+                dataclasses.replace(optimise.METHOD, refines_start=True),
+                # the lidar method runs the others through the registry (no import back up)
+                dataclasses.replace(raw_sweeps.METHOD, build=raw_sweeps.builder(_nested_run))):
   register(_method)
 
 
