@@ -215,10 +215,10 @@ def _header(path, raw: bytes, end_marker: bytes, first_line: bytes | None):
       return lines, offset
 
 
-def _read_ply(path):
-  raw = path.read_bytes()
-  lines, offset = _header(path, raw, b"end_header", b"ply")
-  fmt, elements = None, []  # elements: [name, count, [(prop, type) or (prop, "list")]]
+def _ply_header(path, lines):
+  """(format, elements) of a PLY header's lines: elements [name, count, [(prop, type) or (prop,
+  "list")]], in the file's order."""
+  fmt, elements = None, []
   for line in lines[1:-1]:
     words = line.split()
     if not words or words[0] in ("comment", "obj_info"):
@@ -238,47 +238,73 @@ def _read_ply(path):
       raise DataError(path, f"unexpected PLY header line {line!r}")
   if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
     raise DataError(path, f"unsupported PLY format {fmt!r}")
+  return fmt, elements
+
+
+def _ply_vertex(path, elements) -> int:
+  """The index of the vertex element, which must have x, y and z, and no list property in it
+  or before it (its data could not be found)."""
   names = [e[0] for e in elements]
   if "vertex" not in names:
     raise DataError(path, "PLY header declares no vertex element")
   v = names.index("vertex")
-  count, props = elements[v][1], elements[v][2]
+  props = elements[v][2]
   prop_names = [p for p, _ in props]
   if not {"x", "y", "z"} <= set(prop_names):
     raise DataError(path, f"PLY vertex properties {prop_names} lack x, y or z")
   if any(t == "list" for _, t in props) or any(t == "list" for e in elements[:v] for _, t in e[2]):
     raise DataError(path, "PLY vertex data after or with list properties is not supported")
-  only_vertices = len(elements) == 1
-  if fmt == "ascii":
-    body = raw[offset:].decode("ascii", "replace").split("\n")
-    body = [b for b in body if b.strip()]
-    skip = sum(e[1] for e in elements[:v])
-    rows = body[skip:skip + count]
-    if len(rows) < count:
-      raise DataError(path, f"truncated: header declares {count} vertices, file holds {len(rows)}")
-    if only_vertices and len(body) > count:
-      raise DataError(path, f"header declares {count} vertices but the file holds {len(body)} rows")
-    try:
-      values = np.array(" ".join(rows).split(), dtype=np.float64)
-    except ValueError as e:
-      raise DataError(path, f"non-numeric vertex value ({e})") from None
-    if values.size != count * len(props):
-      raise DataError(path, f"vertex rows hold {values.size} values, expected {count} x {len(props)}")
-    table = values.reshape(count, len(props))
-    return np.stack([table[:, prop_names.index(k)] for k in "xyz"], axis=-1)
-  order = "<" if fmt == "binary_little_endian" else ">"
+  return v
+
+
+def _ply_ascii(path, data: bytes, elements, v: int):
+  """x, y, z (N x 3 float64) of the vertex element `v` of an ascii PLY body."""
+  count, props = elements[v][1], elements[v][2]
+  prop_names = [p for p, _ in props]
+  body = data.decode("ascii", "replace").split("\n")
+  body = [b for b in body if b.strip()]
+  skip = sum(e[1] for e in elements[:v])
+  rows = body[skip:skip + count]
+  if len(rows) < count:
+    raise DataError(path, f"truncated: header declares {count} vertices, file holds {len(rows)}")
+  if len(elements) == 1 and len(body) > count:
+    raise DataError(path, f"header declares {count} vertices but the file holds {len(body)} rows")
+  try:
+    values = np.array(" ".join(rows).split(), dtype=np.float64)
+  except ValueError as e:
+    raise DataError(path, f"non-numeric vertex value ({e})") from None
+  if values.size != count * len(props):
+    raise DataError(path, f"vertex rows hold {values.size} values, expected {count} x {len(props)}")
+  table = values.reshape(count, len(props))
+  return np.stack([table[:, prop_names.index(k)] for k in "xyz"], axis=-1)
+
+
+def _ply_binary(path, data: bytes, elements, v: int, order: str):
+  """x, y, z (N x 3 float64) of the vertex element `v` of a binary PLY body (`order`: "<" little
+  endian, ">" big)."""
+  count, props = elements[v][1], elements[v][2]
   skip = sum(e[1] * np.dtype([(p, order + t) for p, t in e[2]]).itemsize for e in elements[:v])
   dtype = np.dtype([(p, order + t) for p, t in props])
-  data = raw[offset + skip:]
+  data = data[skip:]
   need = count * dtype.itemsize
   if len(data) < need:
     raise DataError(path, f"truncated: header declares {count} vertices ({need} bytes), "
                     f"file holds {len(data)} bytes of vertex data")
-  if only_vertices and len(data) > need:
+  if len(elements) == 1 and len(data) > need:
     raise DataError(path, f"header declares {count} vertices ({need} bytes) but the file holds "
                     f"{len(data)} bytes of data")
   table = np.frombuffer(data, dtype=dtype, count=count)
   return np.stack([table[k].astype(np.float64) for k in "xyz"], axis=-1)
+
+
+def _read_ply(path):
+  raw = path.read_bytes()
+  lines, offset = _header(path, raw, b"end_header", b"ply")
+  fmt, elements = _ply_header(path, lines)
+  v = _ply_vertex(path, elements)
+  if fmt == "ascii":
+    return _ply_ascii(path, raw[offset:], elements, v)
+  return _ply_binary(path, raw[offset:], elements, v, "<" if fmt == "binary_little_endian" else ">")
 
 
 def _read_pcd(path):
