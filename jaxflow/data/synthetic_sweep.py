@@ -166,89 +166,129 @@ def _cyclist(rng):
           (syn.CYLINDER, syn.IDENTITY, (0, 1.25, 0), (0.2, 0.45, 0), None)]
 
 
-def build_scene(rng, opt: Options = Options()):
-  """(Scene in the caster's frame, category per primitive, instance per primitive, ground prims,
-  the sensor's height above the road)."""
+def _sensor_motion(rng, opt: Options):
+  """(rotation, position) of the sensor in frame 2: 0-3 m a frame forward (or opt.speed's), a yaw
+  rate, a little pitch and roll when moving."""
   speed = rng.uniform(*opt.speed) if opt.speed else (
     0.0 if rng.random() < 0.1 else rng.uniform(0.1, 1.0) if rng.random() < 0.4
     else rng.uniform(1.0, 3.0))
   yaw = np.deg2rad(rng.uniform(-3, 3)) * (0.3 if speed > 2 else 1.0) * (speed > 0)
   tilt = syn.rotation((1, 0, 0), np.deg2rad(rng.normal(0, 0.15))) @ syn.rotation(
     (0, 0, 1), np.deg2rad(rng.normal(0, 0.1))) if speed > 0 else syn.IDENTITY
-  sensor_rot = syn.rotation((0, 1, 0), yaw) @ tilt
-  sensor_pos = (math.sin(yaw / 2) * speed, 0.0, math.cos(yaw / 2) * speed)
-  builder = syn.Builder(sensor_rot, sensor_pos)
+  return (syn.rotation((0, 1, 0), yaw) @ tilt,
+          (math.sin(yaw / 2) * speed, 0.0, math.cos(yaw / 2) * speed))
+
+
+class _Labelled:
+  """A scene's builder and the labels of its primitives, as build_scene adds them."""
+
+  def __init__(self, builder: syn.Builder):
+    self.builder, self.cats, self.insts, self.grounds = builder, [], [], []
+
+  def add(self, parts, rot, pos, cat=BACKGROUND, motion_rot=None, motion_pos=None,
+          is_ground=False):
+    """One object (its primitives share its label; an instance number unless background)."""
+    inst = len(set(self.insts)) + 1 if cat != BACKGROUND else 0
+    self.builder.add(parts, rot, pos, motion_rot, motion_pos)
+    self.cats.extend([cat] * len(parts))
+    self.insts.extend([inst] * len(parts))
+    self.grounds.extend([is_ground] * len(parts))
+
+  def built(self, sensor_height: float):
+    """build_scene's tuple."""
+    return (self.builder.scene(), np.array(self.cats, np.uint8), np.array(self.insts, np.int16),
+            np.array(self.grounds), sensor_height)
+
+
+def _facades(rng, scene: _Labelled, street: Street, side: int, dense: bool):
+  """A row of buildings along one side, with gaps (a dense city: at the sidewalk, tall)."""
+  road = street.road
+  z = rng.uniform(-100, -80)
+  while z < 100:
+    length = rng.uniform(6, 30)
+    if rng.random() < 0.75 or dense:
+      x = side * (road + (rng.uniform(3, 9) if not dense else rng.uniform(1.0, 2.0)))
+      height = rng.uniform(3, 18) if not dense else rng.uniform(12, 30)
+      base = street.height(x, z + length / 2) - 2
+      scene.add([(syn.BOX, syn.IDENTITY, syn.ZERO, (4, height / 2 + 1, length / 2), None)],
+                syn.rotation((0, 1, 0), rng.uniform(-0.06, 0.06)),
+                (x + side * 4, base + height / 2 + 1, z + length / 2))
+    z += length + (rng.uniform(0, 8) if not dense else rng.uniform(0, 1))
+
+
+def _roadside(rng, scene: _Labelled, street: Street, side: int, dense: bool):
+  """Poles and trees on one sidewalk, and the cars parked along it."""
+  road = street.road
+  for _ in range(rng.integers(3, 10)):
+    x, z, h = side * (road + rng.uniform(0.4, 2.0)), rng.uniform(-60, 60), rng.uniform(3, 8)
+    parts = [(syn.CYLINDER, syn.IDENTITY, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
+    if rng.random() < 0.5:
+      crown = rng.uniform(1.0, 2.5)
+      parts.append((syn.ELLIPSOID, syn.IDENTITY, (0, h + crown * 0.6, 0), (crown, crown * 0.8, crown),
+                    syn.random_bump(rng, 0.12)))
+    scene.add(parts, syn.IDENTITY, (x, street.height(x, z) - 0.05, z))
+  for _ in range(rng.integers(1, 7) if not dense else rng.integers(6, 12)):
+    x, z = side * (road - 1.1), rng.uniform(-50, 50)
+    heading = rng.uniform(-0.08, 0.08) + (side < 0) * math.pi
+    scene.add(syn.car_parts(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
+              REGULAR_VEHICLE)
+
+
+def _vulnerable(rng, scene: _Labelled, street: Street, side: int):
+  """Pedestrians on one sidewalk (most walking) and perhaps a cyclist near its kerb, riding with
+  the traffic of its side."""
+  road = street.road
+  for _ in range(rng.integers(0, 4)):
+    x, z = side * (road + rng.uniform(0.6, 2.5)), rng.uniform(-30, 30)
+    walking = rng.random() < 0.7
+    scene.add(_person(rng), syn.IDENTITY, (x, street.height(x, z), z), PEDESTRIAN,
+              syn.rotation((0, 1, 0), rng.uniform(-0.1, 0.1)) if walking else None,
+              (rng.uniform(-0.05, 0.05), 0, rng.uniform(-0.18, 0.18)) if walking else None)
+  if rng.random() < 0.5:
+    x, z = side * (road - 3.2), rng.uniform(-30, 30)
+    heading = 0.0 if side < 0 else math.pi
+    v = rng.uniform(0.3, 0.8)
+    scene.add(_cyclist(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
+              BICYCLIST, syn.IDENTITY, (0, 0, v * math.cos(heading)))
+
+
+def _traffic(rng, scene: _Labelled, street: Street, dense: bool):
+  """Cars in the two lanes (+z on the left, -z on the right), a quarter of them stopped."""
+  road = street.road
+  inner = 0.8 if not dense else 1.3  # lane centre from the parking strip (dense: 0.6-1.1 m
+  # between a passing car and a parked one)
+  for lane in (inner - road / 2, road / 2 - inner):
+    heading = 0.0 if lane < 0 else math.pi
+    z = rng.uniform(-60, -40)
+    while z < 60:
+      if abs(z) > 6 or lane > 2.2:  # the ego car drives at x = 0 (2 m wide): no car on it
+        v = 0.0 if rng.random() < 0.25 else rng.uniform(0.3, 3.0)
+        turn = np.deg2rad(rng.uniform(-2, 2)) * (v > 0)
+        d = np.array([math.sin(heading + turn / 2), 0, math.cos(heading + turn / 2)])
+        x = lane + rng.uniform(-0.2, 0.2)
+        scene.add(syn.car_parts(rng), syn.rotation((0, 1, 0), heading + rng.uniform(-0.04, 0.04)),
+                  (x, street.height(x, z), z), REGULAR_VEHICLE,
+                  syn.rotation((0, 1, 0), turn) if v else None, v * d if v else None)
+      z += rng.uniform(10, 30)
+
+
+def build_scene(rng, opt: Options = Options()):
+  """(Scene in the caster's frame, category per primitive, instance per primitive, ground prims,
+  the sensor's height above the road)."""
+  # The draws' order is the scenes' identity: (split, index) pairs stay the same scenes.
+  scene = _Labelled(syn.Builder(*_sensor_motion(rng, opt)))
   street = Street(rng, rng.uniform(1.7, 2.1), opt.dense)
-  cats, insts, grounds = [], [], []
-
-  def add(parts, rot, pos, cat=BACKGROUND, motion_rot=None, motion_pos=None, is_ground=False):
-    inst = len(set(insts)) + 1 if cat != BACKGROUND else 0
-    builder.add(parts, rot, pos, motion_rot, motion_pos)
-    cats.extend([cat] * len(parts))
-    insts.extend([inst] * len(parts))
-    grounds.extend([is_ground] * len(parts))
-
   if opt.ground:
     for kind, rot, pos, size in street.planes():
-      add([(kind, syn.IDENTITY, syn.ZERO, size, None)], rot, pos, is_ground=True)
-  road = street.road
+      scene.add([(kind, syn.IDENTITY, syn.ZERO, size, None)], rot, pos, is_ground=True)
   for side in (-1, 1):
-    z = rng.uniform(-100, -80)
-    while z < 100:  # facades with gaps
-      length = rng.uniform(6, 30)
-      if rng.random() < 0.75 or opt.dense:  # a dense city: facades at the sidewalk, tall
-        x = side * (road + (rng.uniform(3, 9) if not opt.dense else rng.uniform(1.0, 2.0)))
-        height = rng.uniform(3, 18) if not opt.dense else rng.uniform(12, 30)
-        base = street.height(x, z + length / 2) - 2
-        add([(syn.BOX, syn.IDENTITY, syn.ZERO, (4, height / 2 + 1, length / 2), None)],
-            syn.rotation((0, 1, 0), rng.uniform(-0.06, 0.06)),
-            (x + side * 4, base + height / 2 + 1, z + length / 2))
-      z += length + (rng.uniform(0, 8) if not opt.dense else rng.uniform(0, 1))
-    for _ in range(rng.integers(3, 10)):  # poles and trees
-      x, z, h = side * (road + rng.uniform(0.4, 2.0)), rng.uniform(-60, 60), rng.uniform(3, 8)
-      parts = [(syn.CYLINDER, syn.IDENTITY, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
-      if rng.random() < 0.5:
-        crown = rng.uniform(1.0, 2.5)
-        parts.append((syn.ELLIPSOID, syn.IDENTITY, (0, h + crown * 0.6, 0), (crown, crown * 0.8, crown),
-                      syn.random_bump(rng, 0.12)))
-      add(parts, syn.IDENTITY, (x, street.height(x, z) - 0.05, z))
-    for _ in range(rng.integers(1, 7) if not opt.dense else rng.integers(6, 12)):  # parked cars
-      x, z = side * (road - 1.1), rng.uniform(-50, 50)
-      heading = rng.uniform(-0.08, 0.08) + (side < 0) * math.pi
-      add(syn.car_parts(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
-          REGULAR_VEHICLE)
-    if not opt.movers:
-      continue
-    for _ in range(rng.integers(0, 4)):  # pedestrians on the sidewalk
-      x, z = side * (road + rng.uniform(0.6, 2.5)), rng.uniform(-30, 30)
-      walking = rng.random() < 0.7
-      add(_person(rng), syn.IDENTITY, (x, street.height(x, z), z), PEDESTRIAN,
-          syn.rotation((0, 1, 0), rng.uniform(-0.1, 0.1)) if walking else None,
-          (rng.uniform(-0.05, 0.05), 0, rng.uniform(-0.18, 0.18)) if walking else None)
-    if rng.random() < 0.5:  # a cyclist near the kerb, riding with the traffic of its side
-      x, z = side * (road - 3.2), rng.uniform(-30, 30)
-      heading = 0.0 if side < 0 else math.pi
-      v = rng.uniform(0.3, 0.8)
-      add(_cyclist(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z), BICYCLIST,
-          syn.IDENTITY, (0, 0, v * math.cos(heading)))
+    _facades(rng, scene, street, side, opt.dense)
+    _roadside(rng, scene, street, side, opt.dense)
+    if opt.movers:
+      _vulnerable(rng, scene, street, side)
   if opt.movers:
-    inner = 0.8 if not opt.dense else 1.3  # lane centre from the parking strip (dense: 0.6-1.1
-    # m between a passing car and a parked one)
-    for lane in (inner - road / 2, road / 2 - inner):  # traffic: +z on the left lane, -z right
-      heading = 0.0 if lane < 0 else math.pi
-      z = rng.uniform(-60, -40)
-      while z < 60:
-        if abs(z) > 6 or lane > 2.2:  # the ego car drives at x = 0 (2 m wide): no car on it
-          v = 0.0 if rng.random() < 0.25 else rng.uniform(0.3, 3.0)
-          turn = np.deg2rad(rng.uniform(-2, 2)) * (v > 0)
-          d = np.array([math.sin(heading + turn / 2), 0, math.cos(heading + turn / 2)])
-          x = lane + rng.uniform(-0.2, 0.2)
-          add(syn.car_parts(rng), syn.rotation((0, 1, 0), heading + rng.uniform(-0.04, 0.04)),
-              (x, street.height(x, z), z), REGULAR_VEHICLE,
-              syn.rotation((0, 1, 0), turn) if v else None, v * d if v else None)
-        z += rng.uniform(10, 30)
-  return (builder.scene(), np.array(cats, np.uint8), np.array(insts, np.int16),
-          np.array(grounds), -street.g)
+    _traffic(rng, scene, street, opt.dense)
+  return scene.built(-street.g)
 
 
 def _cast(scene, frame, rng, opt: Options, beams: int):
