@@ -89,40 +89,29 @@ class SceneFlowNet(nn.Module):
     elif self.refine != "none":
       raise ValueError(f"model.refine must be 'graph', 'setconv' or 'none', got {self.refine!r}")
 
-  def __call__(self, pc1_BxNx3, pc2_BxMx3, num_iters: int = 8, refine: bool | None = None,
-               freeze_backbone: bool = False, graphs=None, unroll: bool = False, entering=None):
-    """Returns {"flows": B x Z x N x 3} and, when refining, {"refined": B x N x 3}.
+  def _chunk(self, a_BxNx3, b_BxMx3) -> int:
+    """Rows a pairwise kernel of a against b takes at a time (corr_chunk 0: by the clouds' sizes
+    and the device's memory, ops.auto_chunk)."""
+    return ops.auto_chunk(a_BxNx3.shape[0], a_BxNx3.shape[1], b_BxMx3.shape[1], self.corr_chunk)
 
-    refine=None refines when the model has a refinement module. freeze_backbone stops gradients
-    at the coarse flow (stage 2). `graphs` = (nbr1 B x N x knn, nbr2 B x M x knn) replaces the
-    kNN search, e.g. to reuse graphs or to reproduce another implementation's tie-breaking.
-    For the tests of the iteration: `unroll` runs the iterations as a Python loop instead of one
-    scan (the same step); `entering` (Z x B x N x 3) gives the estimate (pc1 + flow) entering each
-    iteration instead of the previous iteration's.
-    """
-    if refine is None:
-      refine = self.refine != "none"
-    if refine and self.refine == "none":
-      raise ValueError("refine=True asked of a model configured with refine='none'")
-    # corr_chunk 0: rows by the clouds' sizes and the device's memory (ops.auto_chunk).
-    chunk = lambda a, b: ops.auto_chunk(a.shape[0], a.shape[1], b.shape[1], self.corr_chunk)
-    if graphs is None:
-      nbr1_BxNxK, nbr2_BxMxK = (
-        ops.knn(pc, pc, self.knn, chunk(pc, pc), self.precision, self.selection)
-        for pc in (pc1_BxNx3, pc2_BxMx3))
-    else:
-      nbr1_BxNxK, nbr2_BxMxK = graphs
-    f1 = self.feature_encoder(pc1_BxNx3, nbr1_BxNxK)
-    f2 = self.feature_encoder(pc2_BxMx3, nbr2_BxMxK)
-    corr_BxNxK, cand_xyz_BxNxKx3 = truncated_correlation(
-      f1, f2, pc2_BxMx3, self.truncate_k, chunk(pc1_BxNx3, pc2_BxMx3), self.precision,
-      self.selection
-    )
-    cand_xyz_3xBxNxK = jnp.stack(planar(cand_xyz_BxNxKx3))  # once, not in every iteration
+  def _graphs(self, pc1_BxNx3, pc2_BxMx3, graphs):
+    """(nbr1 B x N x knn, nbr2 B x M x knn): each cloud's kNN graph, or `graphs` as given."""
+    if graphs is not None:
+      return graphs
+    return tuple(ops.knn(pc, pc, self.knn, self._chunk(pc, pc), self.precision, self.selection)
+                 for pc in (pc1_BxNx3, pc2_BxMx3))
+
+  def _context(self, pc1_BxNx3, nbr1_BxNxK):
+    """(h0, context input): the context features' first half through tanh (the initial hidden
+    state), the second through relu."""
     context = self.context_encoder(pc1_BxNx3, nbr1_BxNxK)
     hidden = context.shape[-1] // 2
-    h0 = jnp.tanh(context[..., :hidden])
-    context_in = nn.relu(context[..., hidden:])
+    return jnp.tanh(context[..., :hidden]), nn.relu(context[..., hidden:])
+
+  def _iterate(self, h0, context_in, corr_BxNxK, cand_xyz_3xBxNxK, pc1_BxNx3, nbr1_BxNxK,
+               num_iters: int, unroll: bool, entering):
+    """The flow after each of `num_iters` update iterations (Z x B x N x 3): one scan, or a
+    Python loop with `unroll` (the same step)."""
 
     def step(mdl, carry, entering_BxNx3):
       h, coords = carry
@@ -140,16 +129,42 @@ class SceneFlowNet(nn.Module):
       for i in range(num_iters):
         carry, flow = step(self, carry, None if entering is None else entering[i])
         flows.append(flow)
-      flows_ZxBxNx3 = jnp.stack(flows)
-    else:
-      if self.remat_iterations:
-        # The backward recomputes each iteration from its carry instead of keeping its
-        # activations (B x N x K x C per iteration): less memory for ~one more forward.
-        step = nn.remat(step, prevent_cse=False)
-      scan = nn.scan(
-        step, variable_broadcast="params", split_rngs={"params": False}, length=num_iters
-      )
-      _, flows_ZxBxNx3 = scan(self, (h0, pc1_BxNx3), entering)
+      return jnp.stack(flows)
+    if self.remat_iterations:
+      # The backward recomputes each iteration from its carry instead of keeping its
+      # activations (B x N x K x C per iteration): less memory for ~one more forward.
+      step = nn.remat(step, prevent_cse=False)
+    scan = nn.scan(
+      step, variable_broadcast="params", split_rngs={"params": False}, length=num_iters
+    )
+    return scan(self, (h0, pc1_BxNx3), entering)[1]
+
+  def __call__(self, pc1_BxNx3, pc2_BxMx3, num_iters: int = 8, refine: bool | None = None,
+               freeze_backbone: bool = False, graphs=None, unroll: bool = False, entering=None):
+    """Returns {"flows": B x Z x N x 3} and, when refining, {"refined": B x N x 3}.
+
+    refine=None refines when the model has a refinement module. freeze_backbone stops gradients
+    at the coarse flow (stage 2). `graphs` = (nbr1 B x N x knn, nbr2 B x M x knn) replaces the
+    kNN search, e.g. to reuse graphs or to reproduce another implementation's tie-breaking.
+    For the tests of the iteration: `unroll` runs the iterations as a Python loop instead of one
+    scan (the same step); `entering` (Z x B x N x 3) gives the estimate (pc1 + flow) entering each
+    iteration instead of the previous iteration's.
+    """
+    if refine is None:
+      refine = self.refine != "none"
+    if refine and self.refine == "none":
+      raise ValueError("refine=True asked of a model configured with refine='none'")
+    nbr1_BxNxK, nbr2_BxMxK = self._graphs(pc1_BxNx3, pc2_BxMx3, graphs)
+    f1 = self.feature_encoder(pc1_BxNx3, nbr1_BxNxK)
+    f2 = self.feature_encoder(pc2_BxMx3, nbr2_BxMxK)
+    corr_BxNxK, cand_xyz_BxNxKx3 = truncated_correlation(
+      f1, f2, pc2_BxMx3, self.truncate_k, self._chunk(pc1_BxNx3, pc2_BxMx3), self.precision,
+      self.selection
+    )
+    cand_xyz_3xBxNxK = jnp.stack(planar(cand_xyz_BxNxKx3))  # once, not in every iteration
+    h0, context_in = self._context(pc1_BxNx3, nbr1_BxNxK)
+    flows_ZxBxNx3 = self._iterate(h0, context_in, corr_BxNxK, cand_xyz_3xBxNxK, pc1_BxNx3,
+                                  nbr1_BxNxK, num_iters, unroll, entering)
     out = {"flows": jnp.moveaxis(flows_ZxBxNx3, 0, 1)}
     if refine:
       coarse = flows_ZxBxNx3[-1]
