@@ -195,6 +195,67 @@ def _window_planes(w_HxW, u_HxW, v_HxW, h_HxW, window: int, max_tilt_deg: float)
   return coef, s, ok & tilt_ok
 
 
+def _fit_windows(coef_HxWx3, w_HxW, u_HxW, v_HxW, h_HxW, windows, max_tilt_deg: float):
+  """(coef HxWx3, done HxW): each cell's plane from the smallest of `windows` whose fit holds
+  (_window_planes), `coef_HxWx3`'s where none does."""
+  new, done = coef_HxWx3.copy(), np.zeros(w_HxW.shape, bool)
+  for window in windows:
+    fitted, _, ok = _window_planes(w_HxW, u_HxW, v_HxW, h_HxW, window, max_tilt_deg)
+    take = ok & ~done
+    new[take] = fitted[take]
+    done |= take
+  return new, done
+
+
+def _lowest_grids(uv_Nx2, h_N, origin, cell: float, n: int):
+  """(occupied, u, v, h), each n x n: the cells holding points, and the (u, v, h) of each one's
+  lowest point (_lowest_per_cell; 0 in an empty cell)."""
+  flat, lu, lv, lh = _lowest_per_cell(uv_Nx2, h_N, origin, cell, (n, n))
+  occupied = np.zeros(n * n, bool)
+  occupied[flat] = True
+  grids = []
+  for values in (lu, lv, lh):
+    g = np.zeros(n * n)
+    g[flat] = values
+    grids.append(g.reshape(n, n))
+  return (occupied.reshape(n, n), *grids)
+
+
+def _grow(coef_HxWx3, occupied_HxW, u_HxW, v_HxW, h_HxW, settings):
+  """(coef, supported) of the lowest points' surface grown from `coef_HxWx3` round by round: each
+  round refits every window to the cells not more than `surface_above` above the current
+  surface, until no cell gains support."""
+  supported = np.zeros(occupied_HxW.shape, bool)
+  for _ in range(settings.surface_rounds):
+    residual = h_HxW - (coef_HxWx3[..., 0] * u_HxW + coef_HxWx3[..., 1] * v_HxW
+                        + coef_HxWx3[..., 2])
+    weight = (occupied_HxW & (residual < settings.surface_above)).astype(np.float64)
+    new, done = _fit_windows(coef_HxWx3, weight, u_HxW, v_HxW, h_HxW,
+                             tuple(settings.surface_windows), settings.max_tilt_deg)
+    grown = (done & ~supported).sum()
+    coef_HxWx3, supported = new, done
+    if not grown:
+      break
+  return coef_HxWx3, supported
+
+
+def _refit_near(surface: Surface, points_Nx3, uv_Nx2, h_N, settings) -> Surface:
+  """The surface refitted to the mean of every point near it (|height| < surface_near) in each
+  cell, weighted by their count: the lowest points lie low by the noise."""
+  n = surface.coef_HxWx3.shape[0]
+  near = np.abs(surface.height(points_Nx3)) < settings.surface_near
+  ij = surface._cells(uv_Nx2[near])
+  flat_near = ij[:, 0] * n + ij[:, 1]
+  count = np.bincount(flat_near, minlength=n * n).reshape(n, n).astype(np.float64)
+  means = [np.bincount(flat_near, x, minlength=n * n).reshape(n, n) / np.maximum(count, 1)
+           for x in (uv_Nx2[near, 0], uv_Nx2[near, 1], h_N[near])]
+  # means are reliable: a 3-cell window where it holds
+  new, _ = _fit_windows(surface.coef_HxWx3, np.sqrt(count), *means,
+                        (3, *settings.surface_windows), settings.max_tilt_deg)
+  return Surface(surface.up, surface.cell, surface.origin, new, surface.supported_HxW,
+                 settings.margin)
+
+
 def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str = "points",
                 extent: float | None = None, cell: float | None = None,
                 settings=None) -> Surface:
@@ -208,7 +269,6 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
   settings = DEFAULTS.ground if settings is None else settings
   extent = settings.surface_extent if extent is None else extent
   cell = settings.surface_cell if cell is None else cell
-  windows, max_tilt_deg = tuple(settings.surface_windows), settings.max_tilt_deg
   k = frames.up_index(up)
   points = np.asarray(points_Nx3, np.float64)
   plane = plane or fit_ground(points, up, settings.plane_range, name=name, settings=settings)
@@ -216,51 +276,14 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
   uv, h = points[:, other], points[:, k]
   n = int(np.ceil(2 * extent / cell))
   origin = np.full(2, -extent)
-  flat, lu, lv, lh = _lowest_per_cell(uv, h, origin, cell, (n, n))
-  occupied = np.zeros(n * n, bool)
-  occupied[flat] = True
-  grids = []
-  for values in (lu, lv, lh):
-    g = np.zeros(n * n)
-    g[flat] = values
-    grids.append(g.reshape(n, n))
-  u_g, v_g, h_g = grids
-  occupied = occupied.reshape(n, n)
   normal = plane.normal
   ref = np.array([-normal[other[0]] / normal[k], -normal[other[1]] / normal[k],
                   -plane.offset / normal[k]])
-  coef = np.broadcast_to(ref, (n, n, 3)).copy()
-  supported = np.zeros((n, n), bool)
-  for _ in range(settings.surface_rounds):
-    residual = h_g - (coef[..., 0] * u_g + coef[..., 1] * v_g + coef[..., 2])
-    weight = (occupied & (residual < settings.surface_above)).astype(np.float64)
-    new, done = coef.copy(), np.zeros((n, n), bool)
-    for window in windows:
-      fitted, _, ok = _window_planes(weight, u_g, v_g, h_g, window, max_tilt_deg)
-      take = ok & ~done
-      new[take] = fitted[take]
-      done |= take
-    grown = (done & ~supported).sum()
-    coef, supported = new, done
-    if not grown:
-      break
+  coef, supported = _grow(np.broadcast_to(ref, (n, n, 3)).copy(),
+                          *_lowest_grids(uv, h, origin, cell, n), settings)
   surface = Surface(k, cell, origin, coef, supported, settings.margin)
-  # The lowest points lie low by the noise: refit each window to the mean of every point near the
-  # surface (|height| < surface_near), weighted by their count.
   for _ in range(2):
-    near = np.abs(surface.height(points)) < settings.surface_near
-    ij = surface._cells(uv[near])
-    flat_near = ij[:, 0] * n + ij[:, 1]
-    count = np.bincount(flat_near, minlength=n * n).reshape(n, n).astype(np.float64)
-    means = [np.bincount(flat_near, x, minlength=n * n).reshape(n, n) / np.maximum(count, 1)
-             for x in (uv[near, 0], uv[near, 1], h[near])]
-    new, done = surface.coef_HxWx3.copy(), np.zeros((n, n), bool)
-    for window in (3, *windows):  # means are reliable: a 3-cell window where it holds
-      fitted, _, ok = _window_planes(np.sqrt(count), *means, window, max_tilt_deg)
-      take = ok & ~done
-      new[take] = fitted[take]
-      done |= take
-    surface = Surface(k, cell, origin, new, supported, settings.margin)
+    surface = _refit_near(surface, points, uv, h, settings)
   return surface
 
 
