@@ -119,6 +119,52 @@ def _surface(points_Nx3, name, notes, settings):
     return None, np.zeros(len(points_Nx3), bool)
 
 
+def _z_up(pc1_Nx3, pc2_Mx3, up: str, names):
+  """(pc1, pc2) float64 with z up, and the column order back to `up`'s; a ConfigError for a wrong
+  axis name, a DataError for a cloud that is not N x 3."""
+  order = frames.permutation(up, "z")  # a ConfigError for a wrong name
+  for cloud, name in ((pc1_Nx3, names[0]), (pc2_Mx3, names[1])):
+    if np.ndim(cloud) != 2 or np.shape(cloud)[1] != 3:
+      raise DataError(name, f"raw_sweep_flow takes N x 3 points, got shape {np.shape(cloud)}")
+  return (np.asarray(pc1_Nx3, np.float64)[:, order], np.asarray(pc2_Mx3, np.float64)[:, order],
+          order, np.argsort(order))
+
+
+def _ground_notes(clouds, surfaces, grounds, names, up: str, camera: bool, settings) -> list:
+  """What looks wrong in each sweep's ground (check_ground), or its up axis (check_up_axis, not
+  on a camera's view); either raises where the up axis is plainly wrong."""
+  notes = []
+  for raw, surf, g, name in zip(clouds, surfaces, grounds, names):
+    problem = surf is not None and ground.check_ground(surf, g, name, up,
+                                                       None if camera else raw, settings)
+    note = not camera and ground.check_up_axis(raw, up, name, g.mean() if surf is not None
+                                               else 0.0, settings=settings)
+    notes.extend(n for n in (problem, note) if n)
+  return notes
+
+
+def _network_start(flow_fn, pc1_Nx3, pc2_Mx3, pc1, keep1, keep2, order, settings):
+  """({"network": the rigid motion of the static part of flow_fn's flow}, that flow N x 3 z up,
+  NaN where flow_fn did not see the point): one more start for the ego-motion and the objects."""
+  kept_flow = np.asarray(flow_fn(np.asarray(pc1_Nx3, np.float32)[keep1],
+                                 np.asarray(pc2_Mx3, np.float32)[keep2]), np.float64)
+  start_flow = np.full_like(pc1, np.nan)
+  start_flow[keep1] = kept_flow[:, order]
+  return ({"network": rigid.fit_static_motion(pc1[keep1], start_flow[keep1],
+                                              settings.static_threshold)}, start_flow)
+
+
+def _joint_ground(pc1, pc2, motion, surf1, surf2, g1, g2, name, settings):
+  """(surface, g1, g2): one ground fitted to both sweeps in pc1's frame, so that the two agree
+  (pc1's own surface and both masks as they are when either sweep has no ground)."""
+  if surf1 is None or surf2 is None:
+    return surf1, g1, g2
+  inverse = motion.inverse()
+  both = np.concatenate([pc1, inverse.apply(pc2)])
+  surface = ground.fit_surface(both, "z", None, name, settings=settings)
+  return surface, surface.ground(pc1), surface.ground(inverse.apply(pc2))
+
+
 def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | None = None,
                    names=("pc1", "pc2"), use_network: bool = False, ground_limits: bool = True,
                    moving_objects: bool = True, seed: int = 0,
@@ -130,28 +176,19 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
   `max_range` (m; 0: every point): default settings.max_range."""
   settings = settings_of(settings)
   max_range = settings.max_range if max_range is None else max_range
-  order = frames.permutation(up, "z")  # a ConfigError for a wrong name
-  back = np.argsort(order)
-  for cloud, name in ((pc1_Nx3, names[0]), (pc2_Mx3, names[1])):
-    if np.ndim(cloud) != 2 or np.shape(cloud)[1] != 3:
-      raise DataError(name, f"raw_sweep_flow takes N x 3 points, got shape {np.shape(cloud)}")
-  pc1 = np.asarray(pc1_Nx3, np.float64)[:, order]
-  pc2 = np.asarray(pc2_Mx3, np.float64)[:, order]
+  pc1, pc2, order, back = _z_up(pc1_Nx3, pc2_Mx3, up, names)
   notes = []
   surf1, g1 = _surface(pc1, names[0], notes, settings.ground)
   surf2, g2 = _surface(pc2, names[1], notes, settings.ground)
   view = azimuth_coverage(pc1)
   camera = view < settings.min_azimuth  # a camera facing a wall sees mostly wall: no sign of up
   if ground_limits:
-    for raw, surf, g, name in ((pc1_Nx3, surf1, g1, names[0]), (pc2_Mx3, surf2, g2, names[1])):
-      problem = surf is not None and ground.check_ground(surf, g, name, up,
-                                                         None if camera else raw, settings.ground)
-      note = not camera and ground.check_up_axis(raw, up, name, g.mean() if surf is not None
-                                                 else 0.0, settings=settings.ground)
-      notes.extend(n for n in (problem, note) if n)
+    notes.extend(_ground_notes((pc1_Nx3, pc2_Mx3), (surf1, surf2), (g1, g2), names, up, camera,
+                               settings.ground))
   near1, near2 = ground.within_range(pc1, "z", max_range), ground.within_range(pc2, "z", max_range)
   keep1, keep2 = ~g1 & near1, ~g2 & near2
-  if camera and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
+  flow_fn_can = flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3
+  if camera and flow_fn_can:
     return _camera_view(flow_fn, pc1_Nx3, pc2_Mx3, keep1, keep2, g1, g2, near1, near2, up,
                         surf1, max_range, settings, notes + [
                           f"{names[0]} covers {360 * view:.0f} of 360 degrees of azimuth: a "
@@ -162,24 +199,15 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
     notes.append(f"{names[0]} covers {360 * view:.0f} of 360 degrees of azimuth: a camera's view, "
                  "not a sweep; the sweep's ego-motion fit may be wrong there")
   starts, start_flow = {}, None
-  if use_network and flow_fn is not None and keep1.sum() >= 3 and keep2.sum() >= 3:
-    kept_flow = np.asarray(flow_fn(np.asarray(pc1_Nx3, np.float32)[keep1],
-                                   np.asarray(pc2_Mx3, np.float32)[keep2]), np.float64)
-    start_flow = np.full_like(pc1, np.nan)
-    start_flow[keep1] = kept_flow[:, order]
-    starts["network"] = rigid.fit_static_motion(pc1[keep1], start_flow[keep1],
-                                                settings.static_threshold)
+  if use_network and flow_fn_can:
+    starts, start_flow = _network_start(flow_fn, pc1_Nx3, pc2_Mx3, pc1, keep1, keep2, order,
+                                        settings)
   rate = settings.frame_rate_hz
   fit = ego.estimate(pc1, pc2, g1, g2, starts, seed, settings=settings.ego, frame_rate_hz=rate)
   if fit.note:
     notes.append(fit.note)
-  surface = surf1
-  if surf1 is not None and surf2 is not None:  # one ground for both sweeps, in pc1's frame
-    inverse = fit.motion.inverse()
-    both = np.concatenate([pc1, inverse.apply(pc2)])
-    surface = ground.fit_surface(both, "z", None, names[0], settings=settings.ground)
-    g1 = surface.ground(pc1)
-    g2 = surface.ground(inverse.apply(pc2))
+  surface, g1, g2 = _joint_ground(pc1, pc2, fit.motion, surf1, surf2, g1, g2, names[0],
+                                  settings.ground)
   sensor2 = np.zeros(3)
   if moving_objects:
     # Not the ground: seen from the road's own height the whole road lies at one elevation.
