@@ -78,7 +78,7 @@ def peak_memory_gib():
   return None if peak is None else peak / 2**30
 
 
-def main():
+def parse_args():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--points", type=int, default=8192)
   parser.add_argument("--iters", type=int, default=32)
@@ -93,8 +93,52 @@ def main():
   parser.add_argument("--precision", default=None, help="model.precision (default: the config's)")
   parser.add_argument("--host-memory", default=host_memory.KEEP, choices=host_memory.CHOICES,
                       help="malloc keeps freed memory (train.py's default) or releases it")
-  args = parser.parse_args()
+  return parser.parse_args()
 
+
+def time_inference(name, cfg, model, variables, pc1, pc2, args):
+  """Prints the forward's time, XLA temporary memory, page faults and peak device memory."""
+  forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters))
+  mem = temp_mib(forward, variables, pc1, pc2)
+  t, faults = timed_faults(forward, variables, pc1, pc2, repeats=args.repeats)
+  peak = peak_memory_gib()
+  print(f"{name:>13} ({cfg.precision}): inference 1 pair x {args.points} points x "
+        f"{args.iters} iters: {1e3 * t:9.1f} ms, {mem:.0f} MiB temp, {faults} page faults"
+        + (f", peak {peak:.2f} GiB" if peak is not None else ""), flush=True)
+
+
+def time_training(name, model, variables, rng, args):
+  """Prints one training step's time (sequence loss, Adam), XLA temporary memory and page
+  faults."""
+  points, batch = args.train_points or args.points, args.train_batch
+  tx = optax.adam(1e-3)
+  opt = tx.init(variables["params"])
+  one = jnp.asarray(rng.uniform(-10, 10, (1, points, 3)), jnp.float32)
+  b1 = jnp.concatenate([one + i for i in range(batch)])
+  b2 = b1 + 0.1
+  gt = jnp.full(b1.shape, 0.1)
+
+  # The clouds are arguments: as constants, XLA would fold their kNN graphs at compile time.
+  @jax.jit
+  def step(params, opt, b1, b2, gt):
+    def loss_fn(p):
+      flows = model.apply({"params": p}, b1, b2, num_iters=args.train_iters,
+                          refine=False)["flows"]
+      return losses.sequence_loss(flows, gt)
+    loss, grads = jax.value_and_grad(loss_fn)(params)
+    updates, opt = tx.update(grads, opt, params)
+    return optax.apply_updates(params, updates), opt, loss
+
+  batch_args = (variables["params"], opt, b1, b2, gt)
+  mem = temp_mib(step, *batch_args)
+  t, faults = timed_faults(lambda *a: step(*a)[2], *batch_args, repeats=args.repeats)
+  print(f"{name:>13}: train step batch {batch} x {points} points x {args.train_iters} iters: "
+        f"{1e3 * t:9.1f} ms, {mem:.0f} MiB temp, {faults} page faults "
+        f"({batch / t:.2f} pairs/s)", flush=True)
+
+
+def main():
+  args = parse_args()
   note = host_memory.keep(args.host_memory)
   print(device_line() + f", host memory {args.host_memory}" + (f" ({note})" if note else ""))
   rng = np.random.default_rng(0)
@@ -109,39 +153,9 @@ def main():
     variables = jax.jit(lambda a, b: model.init(jax.random.PRNGKey(0), a, b, num_iters=1))(
       pc1[:, :64], pc2[:, :64])
     if args.inference:
-      forward = jax.jit(lambda v, a, b: model.apply(v, a, b, num_iters=args.iters))
-      mem = temp_mib(forward, variables, pc1, pc2)
-      t, faults = timed_faults(forward, variables, pc1, pc2, repeats=args.repeats)
-      peak = peak_memory_gib()
-      print(f"{name:>13} ({cfg.precision}): inference 1 pair x {args.points} points x "
-            f"{args.iters} iters: {1e3 * t:9.1f} ms, {mem:.0f} MiB temp, {faults} page faults"
-            + (f", peak {peak:.2f} GiB" if peak is not None else ""), flush=True)
+      time_inference(name, cfg, model, variables, pc1, pc2, args)
     if args.train:
-      points, batch = args.train_points or args.points, args.train_batch
-      tx = optax.adam(1e-3)
-      opt = tx.init(variables["params"])
-      one = jnp.asarray(rng.uniform(-10, 10, (1, points, 3)), jnp.float32)
-      b1 = jnp.concatenate([one + i for i in range(batch)])
-      b2 = b1 + 0.1
-      gt = jnp.full(b1.shape, 0.1)
-
-      # The clouds are arguments: as constants, XLA would fold their kNN graphs at compile time.
-      @jax.jit
-      def step(params, opt, b1, b2, gt):
-        def loss_fn(p):
-          flows = model.apply({"params": p}, b1, b2, num_iters=args.train_iters,
-                              refine=False)["flows"]
-          return losses.sequence_loss(flows, gt)
-        loss, grads = jax.value_and_grad(loss_fn)(params)
-        updates, opt = tx.update(grads, opt, params)
-        return optax.apply_updates(params, updates), opt, loss
-
-      batch_args = (variables["params"], opt, b1, b2, gt)
-      mem = temp_mib(step, *batch_args)
-      t, faults = timed_faults(lambda *a: step(*a)[2], *batch_args, repeats=args.repeats)
-      print(f"{name:>13}: train step batch {batch} x {points} points x {args.train_iters} iters: "
-            f"{1e3 * t:9.1f} ms, {mem:.0f} MiB temp, {faults} page faults "
-            f"({batch / t:.2f} pairs/s)", flush=True)
+      time_training(name, model, variables, rng, args)
 
 
 if __name__ == "__main__":
