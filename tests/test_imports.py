@@ -1,6 +1,7 @@
 """The package's imports go one way (no cycle, module-level or inside functions; each layer of
-jaxflow/__init__.py imports only itself and the layers below) and no module is over 400 lines (the
-synthetic scene generator excepted). Read with `ast`, nothing is imported."""
+jaxflow/__init__.py imports only itself and the layers below), no module is over 400 lines (the
+synthetic scene generator excepted) and no function over 60. Read with `ast`, nothing is
+imported."""
 
 import ast
 from pathlib import Path
@@ -8,6 +9,11 @@ from pathlib import Path
 PACKAGE = Path(__file__).absolute().parent.parent / "jaxflow"
 MAX_LINES = 400
 LONG_ON_PURPOSE = {"jaxflow.data.synthetic"}  # the scene generator: one idea, many scenes
+MAX_FUNCTION_LINES = 60  # from its def line to its last (decorators not counted)
+# Functions allowed over MAX_FUNCTION_LINES, each with why (dotted: module.Class.function).
+LONG_FUNCTIONS = {
+  "jaxflow.lidar.objects.object_flow": "issue 57's work splits it",
+}
 # jaxflow's layers, lowest first: a unit (a subpackage, or a top-level module) may import its own
 # modules and the units of lower layers; units of one layer never import each other.
 LAYERS = (
@@ -155,6 +161,45 @@ def test_no_module_over_400_lines():
   lines = {name: len(path.read_text().splitlines()) for name, path in modules().items()}
   too_long = {n: c for n, c in lines.items() if c > MAX_LINES
               and n not in LONG_ON_PURPOSE}
+  assert too_long == {}
+
+
+def long_functions(files: dict[str, Path]) -> dict[str, int]:
+  """{module.Class.function: lines} of every function (methods and nested ones included) over
+  MAX_FUNCTION_LINES in `files` ({dotted module name: file})."""
+  found = {}
+
+  def visit(node, prefix):
+    for child in ast.iter_child_nodes(node):
+      name = prefix
+      if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        name = f"{prefix}.{child.name}"
+        lines = child.end_lineno - child.lineno + 1
+        if not isinstance(child, ast.ClassDef) and lines > MAX_FUNCTION_LINES:
+          found[name] = lines
+      visit(child, name)
+
+  for module, path in files.items():
+    visit(ast.parse(path.read_text(), str(path)), module)
+  return found
+
+
+def test_long_function_check_finds_functions_methods_and_nested_ones(tmp_path):
+  """The check itself: a 61-line function, method and nested function are found, a 60-line one
+  is not."""
+  body = lambda n: "".join(f"  x{i} = {i}\n" for i in range(n - 1))
+  (tmp_path / "m.py").write_text(
+    f"def ok():\n{body(60)}def long():\n{body(61)}class C:\n  def method(self):\n"
+    + body(61).replace("  ", "    ") + "def outer():\n  def inner():\n"
+    + body(61).replace("  ", "    ") + "  return inner\n")
+  assert long_functions({"m": tmp_path / "m.py"}) == {
+    "m.long": 61, "m.C.method": 61, "m.outer": 63, "m.outer.inner": 61}
+
+
+def test_no_function_over_60_lines():
+  files = {**modules(), **{p.stem: p for p in (PACKAGE.parent / "train.py",
+                                               PACKAGE.parent / "evaluate.py")}}
+  too_long = {n: c for n, c in long_functions(files).items() if n not in LONG_FUNCTIONS}
   assert too_long == {}
 
 
