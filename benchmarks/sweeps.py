@@ -71,51 +71,61 @@ def table(rows):
   return "\n".join(out)
 
 
-def main():
+def parse_args():
   parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   parser.add_argument("--pairs", type=int, default=10)
   parser.add_argument("--network-pairs", type=int, default=0)
   parser.add_argument("--nsfp-pairs", type=int, default=0)
   parser.add_argument("--split", default="test")
   parser.add_argument("--json", default=None)
-  args = parser.parse_args()
+  return parser.parse_args()
+
+
+def methods_of(args):
+  """{row: (flow of a SweepPair, on its 8192-point sample?, how many pairs it runs on)}, in the
+  tables' order."""
+  default = lambda s: sweep.raw_sweep_flow(None, s.pc1, s.pc2)[0]
   methods = {
-    "zero flow": lambda s: np.zeros_like(s.pc1),
-    "ego-motion alone": lambda s: sweep.raw_sweep_flow(None, s.pc1, s.pc2,
-                                                       moving_objects=False)[0],
-    "ego + objects (default)": lambda s: sweep.raw_sweep_flow(None, s.pc1, s.pc2)[0],
-    "ego + objects, 8192-point sweeps": "sub",
+    "zero flow": (lambda s: np.zeros_like(s.pc1), False, args.pairs),
+    "ego-motion alone": (lambda s: sweep.raw_sweep_flow(None, s.pc1, s.pc2,
+                                                        moving_objects=False)[0], False, args.pairs),
+    "ego + objects (default)": (default, False, args.pairs),
+    "ego + objects, 8192-point sweeps": (default, True, args.pairs),
   }
-  network = None
   if args.network_pairs:
     from jaxflow import inference  # pylint: disable=import-outside-toplevel
     predictor = inference.load_predictor(method="network")
     network = lambda a, b: predictor(a, b)
-    methods["ego + objects, network start"] = lambda s: sweep.raw_sweep_flow(
-      network, s.pc1, s.pc2, use_network=True)[0]
-    methods["previous --lidar (network, rigid fit)"] = lambda s: old_lidar(network, s)
+    methods["ego + objects, network start"] = (lambda s: sweep.raw_sweep_flow(
+      network, s.pc1, s.pc2, use_network=True)[0], False, args.network_pairs)
+    methods["previous --lidar (network, rigid fit)"] = (lambda s: old_lidar(network, s), False,
+                                                        args.network_pairs)
   if args.nsfp_pairs:
     from jaxflow import inference  # pylint: disable=import-outside-toplevel
     nsfp = inference.load_predictor(method="nsfp")
-    methods["nsfp, 8192-point sweeps, ground left out"] = "nsfp"
 
-  def nsfp_flow(pair):  # ground points get zero flow: they are not scored
-    flow = np.zeros_like(pair.pc1)
-    flow[~pair.ground] = nsfp(pair.pc1[~pair.ground], pair.pc2[~pair.ground2])
-    return flow
+    def nsfp_flow(pair):  # ground points get zero flow: they are not scored
+      flow = np.zeros_like(pair.pc1)
+      flow[~pair.ground] = nsfp(pair.pc1[~pair.ground], pair.pc2[~pair.ground2])
+      return flow
 
+    methods["nsfp, 8192-point sweeps, ground left out"] = (nsfp_flow, True, args.nsfp_pairs)
+  return methods
+
+
+def score_pairs(args, methods):
+  """({row: [three-way EPE, EPE and seconds of each pair]}, {row: [summed av2 breakdown, summed
+  buckets]}) over the split's first args.pairs pairs, each printed as it is done."""
   per = {k: [] for k in methods}
-  official = {k: [0.0, 0.0] for k in methods}  # summed av2 breakdown and buckets of each method
+  official = {k: [0.0, 0.0] for k in methods}
   for i in range(args.pairs):
     s = ss.sweep_pair(args.split, i)
-    for name, fn in methods.items():
-      if ("network" in name and i >= args.network_pairs) or (fn == "nsfp"
-                                                             and i >= args.nsfp_pairs):
+    for name, (fn, sampled, pairs) in methods.items():
+      if i >= pairs:
         continue
-      pair = subsample(s, 8192) if fn in ("sub", "nsfp") else s
+      pair = subsample(s, 8192) if sampled else s
       start = time.perf_counter()
-      flow = (sweep.raw_sweep_flow(None, pair.pc1, pair.pc2)[0] if fn == "sub" else
-              nsfp_flow(pair) if fn == "nsfp" else fn(pair))
+      flow = fn(pair)
       seconds = time.perf_counter() - start
       r = three_way(flow, pair)
       r["epe"] = float(np.linalg.norm(flow - pair.flow, axis=1).mean())
@@ -126,12 +136,11 @@ def main():
       official[name][1] += av2_eval.bucketed_sums(*args_av2)
       print(f"{s.name} {len(s.pc1)} points, {name}: "
             + " ".join(f"{k} {v:.4f}" for k, v in r.items()), flush=True)
-  rows = {}
-  for name, rs in per.items():
-    if rs:
-      rows[name] = {k: float(np.nanmean([r[k] for r in rs])) for k in rs[0]}
-      rows[name]["pairs"] = len(rs)
-  print(f"\nsynthetic_sweep {args.split} pairs 0-{args.pairs - 1}\n" + table(rows))
+  return per, official
+
+
+def official_table(per, official):
+  """Prints the official readings (av2 breakdown, bucketed) of each row; returns them."""
   av2_rows = {}
   print("\n| method | pairs | av2 EPE 3-Way Average | FD | FS | BS | Dynamic IoU | bucketed static "
         "EPE | bucketed dynamic normalised EPE |\n|---|---|---|---|---|---|---|---|---|")
@@ -144,17 +153,36 @@ def main():
           f"{r['EPE/Foreground/Dynamic']:.4f} | {r['EPE/Foreground/Static']:.4f} | "
           f"{r['EPE/Background/Static']:.4f} | {r['Dynamic IoU']:.3f} | {b['static_epe']:.4f} | "
           f"{b['dynamic_norm_epe']:.4f} |")
-  kitti = {}
-  if (KITTI / "pc1.npy").exists():  # raw frame, camera axes (y up), rows correspond
-    from jaxflow.data.readers import kitti_keep  # pylint: disable=import-outside-toplevel
-    raw1, raw2 = np.load(KITTI / "pc1.npy"), np.load(KITTI / "pc2.npy")
-    keep = kitti_keep(raw1, raw2)
-    start = time.perf_counter()
-    flow, info = sweep.raw_sweep_flow(None, raw1, raw2, up="y")
-    kitti = {"epe_loader_points": float(np.linalg.norm(flow - (raw2 - raw1), axis=1)[keep].mean()),
-             "seconds": time.perf_counter() - start, "points": len(raw1), "note": info.note()}
-    print(f"\nKITTI 000002 raw frame (up y): EPE on the loader's {keep.sum()} points "
-          f"{kitti['epe_loader_points']:.4f} m, {kitti['seconds']:.1f} s\n{info.note()}")
+  return av2_rows
+
+
+def kitti_frame():
+  """The pipeline on the shared raw KITTI frame (up y), printed; {} where it is not there."""
+  if not (KITTI / "pc1.npy").exists():
+    return {}
+  from jaxflow.data.readers import kitti_keep  # pylint: disable=import-outside-toplevel
+  raw1, raw2 = np.load(KITTI / "pc1.npy"), np.load(KITTI / "pc2.npy")  # camera axes, rows match
+  keep = kitti_keep(raw1, raw2)
+  start = time.perf_counter()
+  flow, info = sweep.raw_sweep_flow(None, raw1, raw2, up="y")
+  kitti = {"epe_loader_points": float(np.linalg.norm(flow - (raw2 - raw1), axis=1)[keep].mean()),
+           "seconds": time.perf_counter() - start, "points": len(raw1), "note": info.note()}
+  print(f"\nKITTI 000002 raw frame (up y): EPE on the loader's {keep.sum()} points "
+        f"{kitti['epe_loader_points']:.4f} m, {kitti['seconds']:.1f} s\n{info.note()}")
+  return kitti
+
+
+def main():
+  args = parse_args()
+  per, official = score_pairs(args, methods_of(args))
+  rows = {}
+  for name, rs in per.items():
+    if rs:
+      rows[name] = {k: float(np.nanmean([r[k] for r in rs])) for k in rs[0]}
+      rows[name]["pairs"] = len(rs)
+  print(f"\nsynthetic_sweep {args.split} pairs 0-{args.pairs - 1}\n" + table(rows))
+  av2_rows = official_table(per, official)
+  kitti = kitti_frame()
   if args.json:
     machine = {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                "load_average": os.getloadavg()}
