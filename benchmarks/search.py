@@ -1,4 +1,4 @@
-"""Cost of one exact nearest-point search (jaxflow.methods.objectives.knn, k = 1) on each path.
+"""Cost of one exact nearest-point search (jaxflow.refine.objectives.knn, k = 1) on each path.
 
     python -m benchmarks.search --sizes 8192,100000 [--repeats 5] [--json FILE]
 
@@ -21,7 +21,7 @@ import numpy as np
 from scipy import spatial
 
 from benchmarks.model_speed import device_line
-from jaxflow.methods import objectives
+from jaxflow.refine import objectives
 from tests.test_search import sweep_like
 
 

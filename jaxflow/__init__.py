@@ -11,7 +11,8 @@ tests/test_imports.py checks this):
     network/      the model, its layers, checkpoints
     lidar/        raw sweeps: ground, ego-motion, objects
     viz/          pictures and the 3D viewer
-    methods/      the flow methods by name (network, nsfp, optimise, lidar), objectives, optimisers
+    refine/       the per-pair flow refinement engines: objectives, optimisers, rigid bodies
+    methods/      the flow methods by name (network, nsfp, optimise, lidar)
     evaluation/   metrics, the evaluation loop, reports, flow files, AV2 submissions
     training/     the training loop, losses, logs, events
     cli, inference                                  flags; flow for your own clouds (the API)

@@ -7,7 +7,7 @@ jaxflow.predict (--lidar, --render, --max_points, --save_flows, ...); --method d
 
 A coordinate MLP (8 x 128, ReLU) maps each pc1 point to its flow; it and a backward MLP (the cycle
 term) are optimised from scratch with Adam on the truncated Chamfer distance, up to 5000 steps with
-early stopping, and the flow of the lowest loss is returned (jaxflow.methods.optimiser.NSFP, the
+early stopping, and the flow of the lowest loss is returned (jaxflow.refine.optimiser.NSFP, the
 `nsfp` method of jaxflow.methods.registry). --objective exact (default): NSFP's two-way Chamfer,
 nearest points by k-d tree every step; grid: the one-way terms read from distance grids (faster,
 less accurate on FT3D). From Python: `jaxflow.inference.predict_flow(pc1, pc2, method="nsfp",

@@ -26,7 +26,7 @@ Python API's) refines the network's flow against the whole clouds; `network` is 
 any of the method's settings (e.g. --method.optimise.bodies.inlier=0.1; --print_config lists
 them). An optimisation that did not converge says so on stderr. A long one (NSFP: minutes) shows
 a bar on a terminal; with stderr in a log file it writes its expected time (an estimate, from the
-pace of its first steps) and a line every 10% of its steps (jaxflow.methods.optimiser).
+pace of its first steps) and a line every 10% of its steps (jaxflow.refine.optimiser).
 
 Cloud size (jaxflow.inference): clouds above --max_points (config.eval.num_points, 8192) are sampled
 and the flow mapped back to every PC1 point; --full (or --max_points 0) uses whole clouds, the

@@ -1,9 +1,10 @@
-"""jaxflow.methods.bodies: a scene's rigid bodies found in a flow and fitted to pc2."""
+"""jaxflow.refine.bodies: a scene's rigid bodies found in a flow and fitted to pc2."""
 
 import numpy as np
 import pytest
 
-from jaxflow.methods import bodies, optimise
+from jaxflow.methods import optimise
+from jaxflow.refine import bodies
 
 
 def _rotation(axis, degrees):

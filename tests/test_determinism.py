@@ -66,7 +66,7 @@ def test_enabled_reads_the_last_setting(monkeypatch):
 PROGRAM = """
   import hashlib
   import jax, jax.numpy as jnp, numpy as np
-  from jaxflow.methods import optimiser, rigid_clusters
+  from jaxflow.refine import optimiser, rigid_clusters
   rng = np.random.default_rng(0)
   pc1 = rng.uniform(-20, 20, (1, 300, 3)).astype(np.float32)
   pc2 = pc1 + rng.normal(0.5, 0.1, pc1.shape).astype(np.float32)

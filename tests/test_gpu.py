@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow.methods import objectives, optimiser
+from jaxflow.refine import objectives, optimiser
 from tests.test_search import reference, sweep_like
 
 REPO = Path(__file__).absolute().parent.parent

@@ -21,7 +21,7 @@ LAYERS = (
   ("jaxflow.configs", "jaxflow.runtime"),
   ("jaxflow.geometry",),
   ("jaxflow.data", "jaxflow.network"),
-  ("jaxflow.lidar", "jaxflow.viz"),
+  ("jaxflow.lidar", "jaxflow.viz", "jaxflow.refine"),  # refine: the methods' engines
   ("jaxflow.methods",),  # the lidar method runs jaxflow.lidar's pipeline
   ("jaxflow.evaluation",),
   ("jaxflow.training",),

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxflow.geometry import rigid
-from jaxflow.methods import rigid_clusters
+from jaxflow.refine import rigid_clusters
 
 
 def rotation(axis, angle):

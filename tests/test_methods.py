@@ -1,4 +1,4 @@
-"""jaxflow.methods.optimiser / rigid / nsfp / methods: NSFP recovers a rigid motion, early stopping stops
+"""jaxflow.refine.optimiser / rigid / nsfp / methods: NSFP recovers a rigid motion, early stopping stops
 with the best-loss flow, the cluster fit against NumPy, degenerate clouds stay finite, and the
 methods through evaluate.py, jaxflow.predict and jaxflow.nsfp at toy size."""
 
@@ -12,7 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow.methods import optimise, optimiser, registry, rigid_clusters
+from jaxflow.methods import optimise, registry
+from jaxflow.refine import optimiser, rigid_clusters
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -18,7 +18,8 @@ from jaxflow.data import synthetic_sweep
 from jaxflow.errors import DataError
 from jaxflow.evaluation import evaluator, reporting
 from jaxflow.lidar import sweep
-from jaxflow.methods import optimiser, progress, registry
+from jaxflow.methods import registry
+from jaxflow.refine import optimiser, progress
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 USERS = (ROOT / "docs" / "users.md").read_text()

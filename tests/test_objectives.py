@@ -1,4 +1,4 @@
-"""jaxflow.methods.objectives: the distance grid and its trilinear read against NumPy loops, the fast
+"""jaxflow.refine.objectives: the distance grid and its trilinear read against NumPy loops, the fast
 objective against the exact one, the grid's bound, the k-d tree search against a loop."""
 
 import itertools
@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflow.methods import distance_grid, objectives
+from jaxflow.refine import distance_grid, objectives
 
 
 def test_distance_grid_matches_a_brute_force_reference():

@@ -215,14 +215,14 @@ def test_every_program_of_a_method_carries_the_precision_and_no_callback(method,
 
 def test_the_callback_check_can_fail():
   """The jitted optimiser with its searches inside does call back to the host on the CPU."""
-  from jaxflow.methods import optimiser  # pylint: disable=import-outside-toplevel
+  from jaxflow.refine import optimiser  # pylint: disable=import-outside-toplevel
   pc1, pc2 = pair(n=64)
   assert callbacks(optimiser.optimise.lower(jnp.zeros_like(pc1), pc1, pc2,
                                             optimiser.NSFP).as_text())
 
 
 def test_a_bad_precision_or_search_is_refused():
-  from jaxflow.methods import optimiser, rigid_clusters
+  from jaxflow.refine import optimiser, rigid_clusters
   with pytest.raises(ValueError, match="optimiser precision must be one of highest"):
     optimiser.Settings(precision="fp16")
   with pytest.raises(ValueError, match="optimiser search must be one of auto, host, device"):

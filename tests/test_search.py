@@ -1,4 +1,4 @@
-"""jaxflow.methods.objectives' nearest-point searches: the device's brute force and the host's k-d tree give
+"""jaxflow.refine.objectives' nearest-point searches: the device's brute force and the host's k-d tree give
 the same neighbours on clouds like real sweeps, pc2's tree is built once per optimisation, and the
 device's distance grid holds the exact distances (the host's is within a cell of them)."""
 
@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow.methods import distance_grid, objectives, optimiser
+from jaxflow.refine import distance_grid, objectives, optimiser
 
 
 def sweep_like(n: int, seed: int):

@@ -6,7 +6,7 @@ spread of each point's neighbourhood (normals, lines).
     nbr_NxK = tree.knn(query_Nx3, k)                  # nearest first
     values_NxD, vectors_NxDxD = local_spread(points_NxD, k)   # ascending; vectors[:, :, 0]: normal
 
-Inside compiled programs the nearest-neighbour search is jaxflow.methods.objectives.knn (the host
+Inside compiled programs the nearest-neighbour search is jaxflow.refine.objectives.knn (the host
 search there is this Tree through a callback) and jaxflow.geometry.ops.knn (brute force in jax).
 """
 

@@ -10,7 +10,7 @@ horizontal), point-to-point (a row per axis, or the closed-form `point_weight` p
 weighs the rows by Geman-McClure at that round's scale, solves the damped normal equations of
 the rotation (about the origin or the points' centroid) and the translation (6 unknowns, or yaw and a horizontal translation
 for `dof="yaw_xy"`, z up) and composes the step onto the motion. Users: the rigid bodies of
-`optimise` (jaxflow.methods.bodies: point-to-plane + point-to-point, 6 dof) and the moving
+`optimise` (jaxflow.refine.bodies: point-to-plane + point-to-point, 6 dof) and the moving
 objects of raw sweeps (jaxflow.lidar.objects: point-to-line seen from above, yaw_xy); the
 sensor's own motion is small_gicp's GICP (jaxflow.lidar.ego), scored by `plane_distance`.
 """

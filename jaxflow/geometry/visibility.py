@@ -2,7 +2,7 @@
 the extent of its view, so that a point moved into its frame can be told SEEN (the sensor looked at
 least that far there, an empty direction inside the view included), HIDDEN (behind a nearer
 return: it neither supports nor refutes a motion) or OUTSIDE the view (a camera's edge, the range
-cut). Used by jaxflow.lidar.objects (raw sweeps, z up) and jaxflow.methods.bodies (the model frame, y up)."""
+cut). Used by jaxflow.lidar.objects (raw sweeps, z up) and jaxflow.refine.bodies (the model frame, y up)."""
 
 import numpy as np
 

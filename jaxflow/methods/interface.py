@@ -8,7 +8,7 @@ reaches a method through it, by its properties, never by its name.
 
 The clouds reach `run` in the method's frame (`up`; jaxflow.geometry.frames): callers rotate them
 once, outside every method. `info` is None or the optimiser's per-pair dict (finite, stopped,
-steps; jaxflow.methods.optimiser).
+steps; jaxflow.refine.optimiser).
 """
 
 import dataclasses

@@ -10,7 +10,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from jaxflow.errors import ConfigError
-from jaxflow.methods import optimiser
+from jaxflow.refine import optimiser
 from jaxflow.methods.interface import Method
 
 

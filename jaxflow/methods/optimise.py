@@ -1,6 +1,6 @@
 """The `optimise` method: the network's flow refined per pair by the fast optimiser (distance-grid
-Chamfer + smoothness, then the piecewise-rigid steps of jaxflow.methods.rigid_clusters, an exact
-polish, and the scene's rigid bodies fitted to pc2 by jaxflow.methods.bodies, each stage adopted
+Chamfer + smoothness, then the piecewise-rigid steps of jaxflow.refine.rigid_clusters, an exact
+polish, and the scene's rigid bodies fitted to pc2 by jaxflow.refine.bodies, each stage adopted
 only where pc2 supports it): the recommended
 method for pairs that are not raw LiDAR sweeps (those take the `lidar` method), and predict's
 default."""
@@ -16,7 +16,7 @@ import numpy as np
 from jaxflow.errors import ConfigError
 from jaxflow.geometry import groups, registration
 from jaxflow.geometry.visibility import View
-from jaxflow.methods import bodies, objectives, optimiser, rigid_clusters
+from jaxflow.refine import bodies, objectives, optimiser, rigid_clusters
 from jaxflow.methods.interface import Method
 
 
@@ -65,11 +65,11 @@ class Guard:
 class Optimise:
   """The `optimise` method: from the network's flow after `start_iters` iterations, `descent` (the
   flow optimised as free vectors on the distance grid); then, for `rigid_steps` > 0, clusters of
-  points that move together (jaxflow.methods.rigid_clusters) each get the rigid motion of their
+  points that move together (jaxflow.refine.rigid_clusters) each get the rigid motion of their
   flow, optimised against pc2 for `rigid_steps` steps (6 numbers a cluster); then `polish`:
   free-vector steps from that flow on the exact two-way Chamfer (nearest points by k-d tree), which
   the one-way grid cannot give (steps 0: none); then `bodies` (None: none): the scene's rigid bodies
-  found in that flow and fitted to pc2 (jaxflow.methods.bodies, on the host: one
+  found in that flow and fitted to pc2 (jaxflow.refine.bodies, on the host: one
   device-host round trip a batch). After each of the last three, `guard` (None: none): each group
   of points (the rigid clusters of the flow a stage was given, or the bodies' motions) keeps the
   flow it was given where pc2 does not support the stage's own (Guard)."""
@@ -121,7 +121,7 @@ class _Clock:
 
 def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=None):
   """The `optimise` method's flow from a starting flow (the network's), and the info of its first
-  optimisation (jaxflow.methods.optimiser.optimise). Driven from Python: the searches (pc1's kNN
+  optimisation (jaxflow.refine.optimiser.optimise). Driven from Python: the searches (pc1's kNN
   graph, the distance grid, the polish's nearest points) run between compiled stages, so that no
   compiled program calls back to the host (JAX's persistent compilation cache keeps only such
   programs).
@@ -212,7 +212,7 @@ def _clusters(pc1_BxNx3, flow_BxNx3, graph_BxNxK, settings: rigid_clusters.Setti
 
 
 def rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, chosen: bodies.Settings):
-  """jaxflow.methods.bodies.rigid_bodies of each pair of a batch (NumPy on the host): the flow (a
+  """jaxflow.refine.bodies.rigid_bodies of each pair of a batch (NumPy on the host): the flow (a
   jax array) and each point's motion (B x N; -1: none, its flow unchanged)."""
   flows, motion_of = [], []
   for a, b, f in zip(*map(np.asarray, (pc1_BxNx3, pc2_BxMx3, flow_BxNx3))):

@@ -1,5 +1,5 @@
 """The distance to a cloud sampled once per pair on a voxel grid and read by trilinear
-interpolation at any point: the fast objective of jaxflow.methods.optimiser (the FNSF idea: a step
+interpolation at any point: the fast objective of jaxflow.refine.optimiser (the FNSF idea: a step
 costs O(N), not O(N x M)).
 
 The grid covers pc2's box plus `margin` metres (beyond it every point is farther than `margin`
@@ -18,7 +18,7 @@ import numpy as np
 from scipy import ndimage
 
 from jaxflow.geometry import ops
-from jaxflow.methods.objectives import DEVICE_BLOCK_ELEMENTS, check_search, resolved, squared_differences
+from jaxflow.refine.objectives import DEVICE_BLOCK_ELEMENTS, check_search, resolved, squared_differences
 
 
 class Grid(typing.NamedTuple):

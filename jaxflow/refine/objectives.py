@@ -1,4 +1,4 @@
-"""The self-supervised objectives of flow optimisation (jaxflow.methods.optimiser: NSFP, test time).
+"""The self-supervised objectives of flow optimisation (jaxflow.refine.optimiser: NSFP, test time).
 
 One nearest-point search, one Chamfer term, one smoothness term:
 - `knn` / `nearest`: exact nearest points (Euclidean, a constant of the gradient), searched where
@@ -11,7 +11,7 @@ One nearest-point search, one Chamfer term, one smoothness term:
   device for a search. Costs: benchmarks/SEARCH.md.
 - `chamfer_terms`: the truncated two-way Chamfer with the matches held fixed.
 - `smoothness`: mean L1 difference of the flow over pc1's k-nearest graph.
-- the distance grid of the fast objective: jaxflow.methods.distance_grid.
+- the distance grid of the fast objective: jaxflow.refine.distance_grid.
 """
 
 import collections

@@ -9,11 +9,11 @@ minimises, per pair,
   back = pc1 + flow - h(pc1 + flow), h a second MLP (NSFP's backward flow)],
 with the Chamfer terms either exact (two-way, nearest points searched every `refresh` steps and held
 fixed in between) or read from distance grids built once per pair (`objective="grid"`: the one-way
-pc1 + flow -> pc2 term, O(N) a step; jaxflow.methods.objectives). Every pair runs its own early
+pc1 + flow -> pc2 term, O(N) a step; jaxflow.refine.objectives). Every pair runs its own early
 stopping (the loss has not fallen by `min_delta` for `patience` steps) and returns the flow of its
 lowest loss. The loop is one `lax.while_loop` over blocks of `refresh` scanned steps: no host round
 trip per step (`search` "auto": the nearest points are searched on the device on a GPU or TPU, by
-the host's k-d tree on the CPU; jaxflow.methods.objectives). Every matmul runs at `precision` (exact
+the host's k-d tree on the CPU; jaxflow.refine.objectives). Every matmul runs at `precision` (exact
 float32 by default: a GPU's TF32 would move the points of a cluster tens of metres wide by
 centimetres). Clouds are centred on pc1's mean first (the flow does not change with a translation of
 both; far from the origin float32 would lose the centimetres).
@@ -26,8 +26,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jaxflow.methods import distance_grid, objectives, rigid_clusters
-from jaxflow.methods.progress import Progress
+from jaxflow.refine import distance_grid, objectives, rigid_clusters
+from jaxflow.refine.progress import Progress
 from jaxflow.network.layers import PRECISIONS
 
 MODELS = ("flow", "mlp", "rigid")
@@ -54,7 +54,7 @@ class Settings:
   depth: int = 8  # ReLU layers of the MLP (then a linear one)
   seed: int = 0  # the MLP's initial weights
   precision: str = "highest"  # of every matmul (jaxflow.network.layers.PRECISIONS)
-  search: str = "auto"  # where nearest points are searched (jaxflow.methods.objectives.SEARCHES)
+  search: str = "auto"  # where nearest points are searched (jaxflow.refine.objectives.SEARCHES)
 
   def __post_init__(self):
     if self.model not in MODELS:
@@ -267,7 +267,7 @@ def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(), 
              nbr_BxNxK=None):
   """(flow B x N x 3 of the lowest loss, info: B-vectors steps, stopped (early stopping fired),
   loss_start, loss_best, finite). Model "rigid" needs `clusters` = (labels, R, centroid,
-  translation) from jaxflow.methods.rigid_clusters (`clusters`, `fit`) and does not use `init`.
+  translation) from jaxflow.refine.rigid_clusters (`clusters`, `fit`) and does not use `init`.
   `grids`: those of `distance_grids` for these clouds and settings (None: built here); `nbr_BxNxK`:
   pc1's
   graph of the smoothness term (objectives.neighbours; None: searched here)."""
@@ -341,7 +341,7 @@ def optimise_host_loop(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clu
   (smoothness) are searched here when not given, the same way. `progress`: a bar on stderr of the
   steps, the lowest loss and the time left; None: the bar on a terminal, and elsewhere (a log file)
   plain lines when the run is expected to take over 30 s: that estimate first, then a line every
-  10% of the steps (jaxflow.methods.progress)."""
+  10% of the steps (jaxflow.refine.progress)."""
   _check(settings, clusters)
   search = settings.search
   if grids is None:

@@ -1,4 +1,4 @@
-"""The progress of a long optimisation on stderr (jaxflow.methods.optimiser.optimise_host_loop).
+"""The progress of a long optimisation on stderr (jaxflow.refine.optimiser.optimise_host_loop).
 
     shown = Progress("mlp optimisation", total_steps, progress=None)
     shown.update(steps_done, lambda: lowest_loss)   # after each block of steps

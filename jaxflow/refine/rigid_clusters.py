@@ -6,7 +6,7 @@ to those of its k nearest that are within `radius` m and whose flows differ by l
 `fit` gives each cluster the least-squares rigid motion of its points' flows (Kabsch): rotation R,
 centroid c and translation t, so that p -> R (p - c) + c + t, with jaxflow's one Kabsch
 (jaxflow.geometry.rigid.kabsch_rotation). Every matmul runs at `precision` (exact float32 by
-default). jaxflow.methods.optimiser's `rigid` model then
+default). jaxflow.refine.optimiser's `rigid` model then
 optimises a correction of each cluster's motion against pc2 (6 numbers a cluster, not 3 a point).
 """
 
@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxflow.geometry import ops, rigid
-from jaxflow.methods import objectives
+from jaxflow.refine import objectives
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,7 +26,7 @@ class Settings:
   flow_tolerance: float = 0.3  # metres between the flows of linked points
   min_points: int = 8  # smaller clusters keep a pure translation (their mean flow)
   propagation: int = 64  # label-propagation rounds at most (each also jumps labels to labels)
-  search: str = "auto"  # where the kNN graph is searched (jaxflow.methods.objectives.SEARCHES)
+  search: str = "auto"  # where the kNN graph is searched (jaxflow.refine.objectives.SEARCHES)
 
   def __post_init__(self):
     for name in ("neighbours", "min_points", "propagation"):
