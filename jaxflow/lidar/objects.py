@@ -10,16 +10,18 @@ several starts (standing still, the caller's flow, e.g. the network's, fitted ri
 translation of a search over +-`search_per_s` / `frame_rate_hz` m), each refined by a bird's-eye
 ICP (yaw and translation, point-to-line: jaxflow.geometry.registration; its height follows the
 ground), and keeps the motion that fits pc2 best, standing still unless another fits clearly
-better (jaxflow.geometry.groups.beats); a kept motion is refitted on all the object's points.
-A walking person moves less a frame than `unexplained`: a group shaped as a person (narrow,
-upright, a person's height) first gets the shift of the centroid of pc2's points around it,
-kept when it beats standing still by the same rule. An object moved farther than its own width
-must land where pc1 saw nothing. A group kept still may join a mover to what stands beside it (a
-car passing parked cars): the connected cells of its unexplained points are fitted in turn, each
-kept only where it leaves a place pc2 shows empty for one pc1 showed empty. What pc2 saw is
-judged from its sensor's place (`sensor2`). Points no object claims keep the ego-motion.
-All in z-up coordinates, frame 1. The names are the fields of `settings`,
-jaxflow.lidar.settings.Objects (default: its values).
+better (jaxflow.lidar.judge); a kept motion is refitted on all the object's points. A walking
+person moves less a frame than `unexplained`: a group shaped as a person (narrow, upright, a
+person's height) first gets the shift of the centroid of pc2's points around it, kept when it
+beats standing still by the same rule. A long object sliding along its flat side (a car passing
+beside the sensor) leaves few points unexplained and a cost flat along its length: its ends vote
+for its shift along its axis (jaxflow.lidar.along), a candidate's start unless the costs clearly
+refute it, kept along a flat side (an end face seen refines it). An object moved farther than
+its own width must land where pc1 saw nothing. A group kept still may join a mover to what
+stands beside it (a car passing parked cars): the connected cells of its unexplained points are
+fitted in turn, each kept only where it leaves a place pc2 shows empty for one pc1 showed empty.
+What pc2 saw is judged from its sensor's place (`sensor2`). Points no object claims keep the
+ego-motion. All z up, frame 1. The names: fields of `settings`, jaxflow.lidar.settings.Objects.
 """
 
 import dataclasses
@@ -27,7 +29,7 @@ import dataclasses
 import numpy as np
 
 from jaxflow.geometry import groups, neighbours, registration, rigid, visibility as views
-from jaxflow.lidar import ego
+from jaxflow.lidar import along, ego, judge
 from jaxflow.lidar.settings import DEFAULTS
 
 
@@ -64,38 +66,6 @@ def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion, settings) -> r
                                  about_centroid=True, damping=1e-3, converged=1e-5)
 
 
-def _costs(tree, points_Kx3, visibility, to2, truncate) -> np.ndarray:
-  """Truncated 3-D distance of each point to ego-compensated pc2, NaN where pc2 could not see it
-  (a box slid along its own side still matches seen from above, not in 3-D), in units of
-  `truncate` (far objects are sampled sparsely: their distances are larger whatever the motion)."""
-  d, _ = tree.nearest(points_Kx3, truncate)
-  d = np.minimum(d, truncate) / truncate
-  d[visibility.hidden(to2.apply(points_Kx3))] = np.nan
-  return d
-
-
-def _mean(costs, min_seen: float) -> float:
-  """A motion's cost: the mean over the visible points (1, the truncation, when fewer than
-  `min_seen` of them are)."""
-  seen = np.isfinite(costs)
-  return float(costs[seen].mean()) if seen.mean() >= min_seen else 1.0
-
-
-def _rule(settings) -> groups.Rule:
-  """The objects block's judgement: a motion beats standing still by `margin`, by
-  `relative_margin` of still's cost and by `significance` standard errors."""
-  return groups.Rule(settings.margin, settings.relative_margin, settings.significance,
-                     settings.min_seen, settings.min_points // 2)
-
-
-def _clearly_better(base, other, settings) -> bool:
-  """groups.beats under the objects block's rule; where pc2 cannot see the base placement (a car
-  come nearer along the line of sight hides its old place), the other must fit within
-  `hidden_fit` on its own."""
-  verdict = groups.beats(base, other, _rule(settings))
-  return _mean(other, settings.min_seen) <= settings.hidden_fit if verdict is None else verdict
-
-
 def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
   """The best horizontal translation within +-`search` m (3-D cost; coarse, then fine)."""
   best = np.zeros(3)
@@ -126,7 +96,7 @@ def _moving_parts(scene, points_Kx3, motion, truncate) -> np.ndarray:
   still = scene.costs(points_Kx3, truncate)
   moving = scene.costs(motion.apply(points_Kx3), truncate)
   for _, mine in parts.members():
-    if len(mine) >= s.min_points and _clearly_better(moving[mine], still[mine], s):
+    if len(mine) >= s.min_points and judge.clearly_better(moving[mine], still[mine], s):
       keep[mine] = False
   return keep
 
@@ -147,6 +117,7 @@ class _Scene:
   target: ego.Target  # pc2 seen from above (the ICP's point-to-line rows)
   tree: neighbours.Tree  # pc2's points above the ground (3-D costs)
   new: np.ndarray  # bool, each of those points: pc1 does not explain it (from above)
+  before: object  # what pc1 shows a long object's vote (jaxflow.lidar.along.Before)
   visibility: views.View  # what pc2's sensor saw (a placement it could not see: no evidence)
   ego_motion: rigid.Motion
   search: float  # m: an object's translation search, +- this (a frame's worth of search_per_s)
@@ -154,7 +125,7 @@ class _Scene:
   settings: object  # the objects block
 
   def costs(self, points_Kx3, truncate: float) -> np.ndarray:
-    return _costs(self.tree, points_Kx3, self.visibility, self.ego_motion, truncate)
+    return judge.costs(self.tree, points_Kx3, self.visibility, self.ego_motion, truncate)
 
   def plausible(self, motion: rigid.Motion, points_Kx3) -> bool:
     """No car turns or jumps farther than the limits in a frame."""
@@ -191,14 +162,17 @@ def _person_shift(scene, pts_Kx3):
   return rigid.Motion(np.eye(3), shift)
 
 
-def _is_candidate(idx, unexplained_N, height_N, pc1_Nx3, s) -> bool:
-  """Whether a group is worth fitting: enough points, enough of them the ego-motion leaves
-  unexplained, and not structure (a facade, a tree, one column of a far wall's returns)."""
-  if len(idx) < s.min_points or (unexplained_N[idx].mean() < s.min_unexplained
-                                 and unexplained_N[idx].sum() < s.many_unexplained):
-    return False
-  return not (np.ptp(pc1_Nx3[idx, :2], axis=0).max() > s.max_size
-              or (height_N[idx] > s.object_top).mean() > s.max_high)
+def _is_structure(idx, height_N, pc1_Nx3, s) -> bool:
+  """Whether a group is too few points or structure (a facade, a tree, one column of a far wall's
+  returns): never fitted."""
+  return (len(idx) < s.min_points or np.ptp(pc1_Nx3[idx, :2], axis=0).max() > s.max_size
+          or (height_N[idx] > s.object_top).mean() > s.max_high)
+
+
+def _is_candidate(idx, unexplained_N, s) -> bool:
+  """Whether enough of a group's points are unexplained to fit it (else its ends may: along)."""
+  return (unexplained_N[idx].mean() >= s.min_unexplained
+          or unexplained_N[idx].sum() >= s.many_unexplained)
 
 
 def _novelty(scene, pts_Kx3, motion, truncate) -> float:
@@ -217,7 +191,7 @@ def _new_place(scene, pts_Kx3, fit) -> bool:
   to one pc1 showed empty (`_novelty`), and the part is object-sized (`part_size` wide)."""
   s = scene.settings
   _, motion, truncate = fit
-  return bool(_mean(scene.costs(pts_Kx3, truncate), s.min_seen) >= s.vacated
+  return bool(judge.mean(scene.costs(pts_Kx3, truncate), s.min_seen) >= s.vacated
               and np.ptp(pts_Kx3[:, :2], axis=0).max() >= s.part_size
               and _novelty(scene, pts_Kx3, motion, truncate) >= s.novelty)
 
@@ -246,38 +220,38 @@ def _unexplained_parts(idx, unexplained_N, pc1_Nx3, s):
           if s.min_points <= len(mine) <= s.part_share * len(idx)]
 
 
-def _truncation(pts_Kx3, queries_Qx3, s) -> float:
-  """An object's cost truncation (m): `spacings` of its median point spacing (each query's
-  nearest other point of the object), within truncate .. max_truncate."""
-  spacing = np.median(neighbours.Tree(pts_Kx3).knn(queries_Qx3, 2, distances=True)[0][:, 1])
-  return float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
-
-
-def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng):
+def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   """(start name, motion, truncation) of an object's best motion, or None when standing still
-  is not clearly beaten. `given_Kx3`: where a caller's flow takes the points (frame 1), or None.
+  is not clearly beaten. `given_Kx3`: where a caller's flow takes the points (frame 1), or None;
+  `vote`: what a long object's ends say (jaxflow.lidar.along), or None.
   Motions are searched on half the points and judged on the other half: the best of many motions
   fits its own points better than standing still by chance alone."""
   s = scene.settings
   shuffled = pts_Kx3[rng.permutation(len(pts_Kx3))]
-  sample, judge = shuffled[0::2][:s.search_points], shuffled[1::2]
+  sample, judged = shuffled[0::2][:s.search_points], shuffled[1::2]
   starts = {"search": _search(scene.tree, sample, scene.search, s)}
   if given_Kx3 is not None:
     starts["network"] = rigid.kabsch(pts_Kx3, given_Kx3)
-  truncate = _truncation(pts_Kx3, judge, s)
-  still_costs = scene.costs(judge, truncate)
-  best_name, best, best_costs = "still", rigid.Motion(np.eye(3), np.zeros(3)), still_costs
+  truncate = judge.truncation(pts_Kx3, judged, s)
+  still_costs = scene.costs(judged, truncate)
+  best = "still", rigid.Motion(np.eye(3), np.zeros(3)), still_costs
   for name, start in starts.items():
     for m in (start, _bev_icp(scene.target, sample, start, s)):
-      if not scene.plausible(m, judge):
+      if not scene.plausible(m, judged):
         continue
-      c = scene.costs(m.apply(judge), truncate)
-      if _mean(c, s.min_seen) < _mean(best_costs, s.min_seen):
-        best_name, best, best_costs = name, m, c
-  if best_name == "still" or not _clearly_better(still_costs, best_costs, s):
+      c = scene.costs(m.apply(judged), truncate)
+      if judge.mean(c, s.min_seen) < judge.mean(best[2], s.min_seen):
+        best = name, m, c
+  if vote is not None:  # a long object: its ends say where it is along its flat side
+    best = along.adopt(scene, judged, truncate, vote, (best, still_costs),
+                       lambda m: _bev_icp(scene.target, sample, m, s))
+  best_name, best, best_costs = best
+  if best_name == "still" or not judge.clearly_better(still_costs, best_costs, s):
     return None
   refit = _bev_icp(scene.target, pts_Kx3, best, s)  # chosen on halves: now fitted on all points
-  if _mean(scene.costs(refit.apply(pts_Kx3), truncate), s.min_seen) <= _mean(
+  if best_name.endswith("along"):  # a flat side: the refit slides along it, the ends say where
+    refit = along.settle(scene.target, pts_Kx3, refit, vote, s)
+  if judge.mean(scene.costs(refit.apply(pts_Kx3), truncate), s.min_seen) <= judge.mean(
       scene.costs(best.apply(pts_Kx3), truncate), s.min_seen):
     best = refit
   return best_name, best, truncate
@@ -290,9 +264,9 @@ def _fit_person(scene, pts_Kx3):
   if shift is None:
     return None
   s = scene.settings
-  truncate = _truncation(pts_Kx3, pts_Kx3, s)
+  truncate = judge.truncation(pts_Kx3, pts_Kx3, s)
   still = scene.costs(pts_Kx3, truncate)
-  if not _clearly_better(still, scene.costs(shift.apply(pts_Kx3), truncate), s):
+  if not judge.clearly_better(still, scene.costs(shift.apply(pts_Kx3), truncate), s):
     return None
   return "person", shift, truncate
 
@@ -317,6 +291,71 @@ def _low_ground_under(pts_Kx3, pc1_Nx3, ground1_N, height_N, s) -> np.ndarray:
   return low[np.array([tuple(c) in cells for c in keys])]
 
 
+def _scene(pc1, pc2_Mx3, ground1, ground2_M, ego_motion, s, ego_settings, rate, sensor2):
+  """The pair's _Scene (pc2 brought into frame 1); None: pc2 has too few points above the ground."""
+  pc2_in1 = ego_motion.inverse().apply(pc2_Mx3)
+  target = ego.Target(pc2_in1, ground2_M, ego_settings)
+  above2 = pc2_in1[~np.asarray(ground2_M, bool)]
+  if target.tree is None or len(above2) < 3:
+    return None
+  before = ego.Target(pc1, ground1, ego_settings)  # pc1 seen from above
+  return _Scene(target, neighbours.Tree(above2), _per_point(before, above2) > s.unexplained,
+                along.before(pc1, before, ~ground1, above2, s.unexplained),
+                views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden, sensor2),
+                ego_motion, s.search_per_s / rate, s.max_yaw_deg_per_s / rate, s)
+
+
+@dataclasses.dataclass
+class _Pass:
+  """A pair's objects being fitted: what each fit reads, and the flow and motions it writes."""
+  scene: _Scene
+  pc1: np.ndarray
+  ground1: np.ndarray  # bool N
+  height: np.ndarray  # N: m above the ground
+  unexplained: np.ndarray  # bool N: ego-compensated pc2 does not explain the point (from above)
+  given: np.ndarray | None  # N x 3: where the caller's flow takes each point (frame 1)
+  surface: object  # jaxflow.lidar.ground.Surface, or None
+  rngs: tuple  # (candidates by their points, by their ends alone): the first's draws as before
+  flow: np.ndarray  # N x 3: the ego-motion's, each moved object's written over it
+  moved: list = dataclasses.field(default_factory=list)  # Found.moved
+  candidates: int = 0
+
+  def fit(self, idx):
+    """A group's fit (start name, motion, truncation), or None: a person's shift, or an object's
+    motion where it is worth fitting (counted a candidate)."""
+    scene, s, pc1 = self.scene, self.scene.settings, self.pc1
+    fit = _fit_person(scene, pc1[idx]) if _is_person(idx, pc1, self.height, s) else None
+    if fit is None:
+      if _is_structure(idx, self.height, pc1, s):
+        return None
+      vote = along.group_vote(idx, pc1, scene.tree.points, scene.before, scene.search, s)
+      by_points = _is_candidate(idx, self.unexplained, s)
+      if not (by_points or along.moved(vote, s)):
+        return None
+      usable = self.given is not None and np.isfinite(self.given[idx]).all()
+      fit = _fit_object(scene, pc1[idx], self.given[idx] if usable else None,
+                        self.rngs[0 if by_points else 1], vote)
+    self.candidates += 1
+    return fit
+
+  def apply(self, idx, fit):
+    """The flow of a fitted group's points that move with it (_moving_parts), and of its own
+    lowest points taken as ground."""
+    name, best, truncate = fit
+    pts = self.pc1[idx]
+    if self.surface is not None:
+      best = _on_the_ground(best, pts, self.surface)
+    parts = _moving_parts(self.scene, pts, best, truncate)
+    idx, pts = idx[parts], pts[parts]
+    world = best.then(self.scene.ego_motion)
+    self.flow[idx] = world.flow(pts)
+    yaw = float(np.degrees(np.arctan2(best.rotation[1, 0], best.rotation[0, 0])))
+    self.moved.append((len(idx), best.translation, yaw, name))
+    if self.surface is not None:
+      low = _low_ground_under(pts, self.pc1, self.ground1, self.height, self.scene.settings)
+      self.flow[low] = world.flow(self.pc1[low])
+
+
 def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion, surface=None,
                 start_flow_Nx3=None, seed: int = 0, settings=None, ego_settings=None,
                 frame_rate_hz: float | None = None, sensor2=None):
@@ -332,62 +371,30 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   pc1 = np.asarray(pc1_Nx3, np.float64)
   ground1 = np.asarray(ground1_N, bool)
   flow = ego_motion.flow(pc1).astype(np.float64)
-  back = ego_motion.inverse()
-  pc2_in1 = back.apply(pc2_Mx3)
-  target = ego.Target(pc2_in1, ground2_M, ego_settings)
-  above2 = pc2_in1[~np.asarray(ground2_M, bool)]
-  if target.tree is None or len(above2) < 3:
+  scene = _scene(pc1, pc2_Mx3, ground1, ground2_M, ego_motion, s, ego_settings, rate, sensor2)
+  if scene is None:
     return flow.astype(np.float32), Found(0, 0, [])
   height = surface.height(pc1) if surface is not None else pc1[:, 2] - pc1[ground1, 2].mean() if (
     ground1.any()) else pc1[:, 2] - pc1[:, 2].min()
   found = object_groups(pc1, np.where(ground1, -1.0, height), settings=s).without(ground1)
-  unexplained = _per_point(target, pc1) > s.unexplained
-  new = _per_point(ego.Target(pc1, ground1, ego_settings), above2) > s.unexplained
-  scene = _Scene(target, neighbours.Tree(above2), new,
-                 views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden, sensor2),
-                 ego_motion, s.search_per_s / rate, s.max_yaw_deg_per_s / rate, s)
-  given = None if start_flow_Nx3 is None else back.apply(
+  given = None if start_flow_Nx3 is None else ego_motion.inverse().apply(
     pc1 + np.asarray(start_flow_Nx3, np.float64))
-  rng = np.random.default_rng(seed)
-  moved, candidates, still = [], 0, []
-
-  def fit_group(idx, pts):
-    fit = _fit_person(scene, pts) if _is_person(idx, pc1, height, s) else None
-    if fit is None:
-      if not _is_candidate(idx, unexplained, height, pc1, s):
-        return None, False
-      usable = given is not None and np.isfinite(given[idx]).all()
-      fit = _fit_object(scene, pts, given[idx] if usable else None, rng)
-    return fit, True
-
-  def apply(idx, pts, fit):
-    name, best, truncate = fit
-    if surface is not None:
-      best = _on_the_ground(best, pts, surface)
-    parts = _moving_parts(scene, pts, best, truncate)
-    idx, pts = idx[parts], pts[parts]
-    flow[idx] = best.then(ego_motion).flow(pts)
-    yaw = float(np.degrees(np.arctan2(best.rotation[1, 0], best.rotation[0, 0])))
-    moved.append((len(idx), best.translation, yaw, name))
-    if surface is not None:
-      low = _low_ground_under(pts, pc1, ground1, height, s)
-      flow[low] = best.then(ego_motion).flow(pc1[low])
-
+  run = _Pass(scene, pc1, ground1, height, _per_point(scene.target, pc1) > s.unexplained, given,
+              surface, (np.random.default_rng(seed), np.random.default_rng([seed, 1])), flow)
+  still = []
   for _, idx in found.members():
-    fit, tried = fit_group(idx, pc1[idx])
-    candidates += tried
+    fit = run.fit(idx)
     if fit is not None and _onto_what_stood(scene, pc1[idx], fit):
       fit = None
     if fit is None:
       still.append(idx)
     else:
-      apply(idx, pc1[idx], fit)
+      run.apply(idx, fit)
   # A group kept still may join a mover to what stands beside it (a car passing parked cars): its
   # unexplained points' own groups are fitted in turn.
   for idx in still:
-    for part in _unexplained_parts(idx, unexplained, pc1, s):
-      fit, tried = fit_group(part, pc1[part])
-      candidates += tried
+    for part in _unexplained_parts(idx, run.unexplained, pc1, s):
+      fit = run.fit(part)
       if fit is not None and _new_place(scene, pc1[part], fit):
-        apply(part, pc1[part], fit)
-  return flow.astype(np.float32), Found(found.count, candidates, moved)
+        run.apply(part, fit)
+  return run.flow.astype(np.float32), Found(found.count, run.candidates, run.moved)

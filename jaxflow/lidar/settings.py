@@ -183,6 +183,22 @@ class Objects:
   person_least_matches: int = 5  # pc2's points there at least (fewer: no shift) ...
   person_matched_share: float = 1 / 3  # ... and at least this share of the group's count
   person_min_shift: float = 0.05  # m: a smaller shift is standing still
+  # A long object sliding along its own flat side (a car passing beside the sensor) is fixed along
+  # its length by its ends: the cells it occupies along its axis vote for its shift
+  # (jaxflow.lidar.along), which makes it a candidate and starts its fit, kept where the costs do
+  # not clearly refute it.
+  along_min_length: float = 2.5  # m: a group at least this long (seen from above) gets the vote
+  along_bin: float = 0.025  # m: the vote's cells along the axis (and its shifts' step)
+  along_band: float = 0.3  # m: ... and their height
+  # m: cells between two returns of a band this near are occupied too, so that the ends decide
+  # the vote, not the returns' spacing (a ring's on a car's side: centimetres near, more far)
+  along_gap: float = 0.3
+  along_cross: float = 0.5  # m: pc2's points this far beyond the group's band across the axis vote
+  along_support: float = 0.5  # share of the group's cells the vote's shift must match
+  # Mean squared along-axis part of the normals of a long object's lines (from above) below which
+  # it shows a flat side only (a car beside the sensor: 0.01-0.03; seen from its end: 0.5-0.9):
+  # only then it gets the vote, and its fit keeps the vote's shift; else its end face fixes it.
+  along_faces: float = 0.1
 
   def __post_init__(self):
     _check(self)
