@@ -23,7 +23,7 @@ that setting's one home: `--corr_chunk` or `--config.model.corr_chunk` on the co
 Raw sweeps (the `lidar` method; `lidar=True` runs it with the predictor's method as the one it may
 run): jaxflow.lidar.sweep.raw_sweep_flow, the ground, the sensor's ego-motion and one rigid motion
 per moving object; every pc1 point gets a row. The method of its settings (`method.lidar.method`,
-jaxflow.methods.raw_sweeps.Lidar) runs only on a camera's view (under half the azimuth: the
+jaxflow.methods.lidar.Lidar) runs only on a camera's view (under half the azimuth: the
 non-ground points within `max_range`), or as one more start of the fits with `start`; its checkpoint
 is loaded then, not before.
 """
@@ -42,7 +42,8 @@ from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
 from jaxflow.geometry import frames, ops
 from jaxflow.lidar import sweep
-from jaxflow.methods import raw_sweeps, registry
+from jaxflow.methods import lidar as lidar_method
+from jaxflow.methods import registry
 from jaxflow.network import checkpointing
 from jaxflow.runtime import configfile
 
@@ -112,7 +113,7 @@ class Predictor:
     if self.config is None:
       self.config = _NO_MODEL
     if registry.get(self.method).raw_sweeps:
-      self.method_settings = raw_sweeps.settings_of(self.method_settings)
+      self.method_settings = lidar_method.settings_of(self.method_settings)
 
   @property
   def min_points(self) -> int:
@@ -144,7 +145,7 @@ class Predictor:
     if registry.get(self.method).raw_sweeps:
       return dataclasses.replace(self, method_settings=configfile.replace_settings(
         self.method_settings, fields, f"method.{self.method}"), _fns={}) if fields else self
-    name = raw_sweeps.METHOD.name
+    name = lidar_method.METHOD.name
     nested = _Deferred(lambda: self)
     return Predictor(None, None, None, False, method=name, nested=nested,
                      method_settings=registry.settings(name, fields={"method": self.method,
@@ -169,13 +170,13 @@ class Predictor:
     up, note = frames.resolve_up(pc1, up, method.up, names[0], ground_limits)
     note = note and note + LIDAR_HINT  # a cloud read with another up is likely a sweep
     inner = []  # the Prediction of the method, in its frame
-    flow = raw_sweeps.in_frame(_estimate(lambda: self, names, sampling, inner), up, method.up)(
+    flow = lidar_method.in_frame(_estimate(lambda: self, names, sampling, inner), up, method.up)(
       pc1, as_cloud(pc2_Mx3, names[1], self.min_points))
     return dataclasses.replace(inner[0], flow=flow, up=up,
                                notes=(note, *inner[0].notes) if note else inner[0].notes)
 
   def _sweeps(self, pc1_Nx3, pc2_Mx3, names, up, ground_limits, sampling) -> Prediction:
-    """The Prediction of a raw-sweep method (jaxflow.methods.raw_sweeps): the method of its
+    """The Prediction of a raw-sweep method (jaxflow.methods.lidar): the method of its
     settings, if any, on the kept points, sampled as any cloud."""
     settings = self.method_settings
     least = sweep.min_points(settings)  # the pipeline's own, whether or not a method runs
@@ -186,10 +187,10 @@ class Predictor:
     kept_names = tuple(f"{n} (after ground removal and the {settings.max_range} m cut)"
                        for n in names)
     inner = []  # the Prediction of the kept points
-    flow_fn = None if self.nested is None else raw_sweeps.in_frame(
+    flow_fn = None if self.nested is None else lidar_method.in_frame(
       _estimate(self.nested, kept_names, sampling, inner), up,
       registry.nested(settings.method).up)
-    flow, info = raw_sweeps.pair_flow(flow_fn, *clouds, settings, up, names, ground_limits)
+    flow, info = lidar_method.pair_flow(flow_fn, *clouds, settings, up, names, ground_limits)
     notes = inner[-1].notes if inner else tuple(n for n in [lopsided(*info.kept)] if n)
     notes = (up_note, *notes) if up_note else notes
     return Prediction(np.asarray(flow, np.float32), notes, info.kept, info, up)
@@ -306,7 +307,7 @@ def load_predictor(checkpoint=None, config: ml_collections.ConfigDict | None = N
   chosen_method = registry.get(method)
   if chosen_method.raw_sweeps:
     chosen = method_settings or registry.settings(method, fields=method_fields)
-    nested = raw_sweeps.settings_of(chosen).method
+    nested = lidar_method.settings_of(chosen).method
     if nested is not None:  # its settings' errors now, its checkpoint when it runs
       registry.nested(nested)
       settings = nested_settings or registry.settings(nested, steps, iters, objective)

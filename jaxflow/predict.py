@@ -33,7 +33,7 @@ and the flow mapped back to every PC1 point; --full (or --max_points 0) uses who
 correlation built config.model.corr_chunk rows at a time (--corr_chunk N sets it; the checkpoint's
 0: as many as the clouds' sizes and the memory allow). --seed seeds the sampling.
 
-Raw sweeps (--lidar, the spelling of --method lidar: jaxflow.methods.raw_sweeps,
+Raw sweeps (--lidar, the spelling of --method lidar: jaxflow.methods.lidar,
 jaxflow.lidar.sweep): the ground if the sweep has one (local planes along --up: z, the LiDAR
 convention; y for a camera frame such as KITTI's), the sensor's ego-motion (GICP of the two sweeps)
 and one rigid motion per moving object, sought in the whole sweep (beyond --max_range too); every

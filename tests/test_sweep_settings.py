@@ -14,7 +14,7 @@ from jaxflow import inference
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.errors import DataError
 from jaxflow.lidar import ego, settings as lidar_settings, sweep
-from jaxflow.methods import raw_sweeps
+from jaxflow.methods import lidar as lidar_method
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m.
@@ -140,7 +140,7 @@ def test_print_config_lists_the_sweep_settings_with_units(runs):
   stdout, stderr, rc = runs[1]["print_config"]
   assert rc == 0, stderr[-2000:]
   lines = [l for l in stdout.splitlines() if l.startswith("method.lidar.")]
-  fields = _field_paths(raw_sweeps.Lidar())  # the pipeline's and the method it runs
+  fields = _field_paths(lidar_method.Lidar())  # the pipeline's and the method it runs
   assert len(lines) == len(fields) > 50
   assert any(l.startswith("config.eval.") for l in stdout.splitlines())  # and the first config
   assert "method.optimise.rigid_steps = 3" in stdout  # --lidar --method X: X's settings too

@@ -5,7 +5,7 @@ use them (`--method`). Each is one module with a `METHOD` (jaxflow.methods.inter
 - `nsfp`: the NSFP baseline, an MLP optimised per pair, no checkpoint (jaxflow.methods.nsfp);
 - `optimise`: the network's flow refined per pair (jaxflow.methods.optimise; predict's default);
 - `lidar`: raw LiDAR sweeps, ground, ego-motion and moving objects, a method's flow of their points
-  only where its settings ask (jaxflow.methods.raw_sweeps; predict --lidar).
+  only where its settings ask (jaxflow.methods.lidar; predict --lidar).
 
     fn = model_predict_fn(model, num_iters=32, refine=False, method="optimise")
     flow_BxNx3 = fn(params, pc1_BxNx3, pc2_BxMx3)      # in the method's frame (METHODS[...].up)
@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxflow.runtime import configfile
 from jaxflow.errors import ConfigError
-from jaxflow.methods import network_alone, nsfp, optimise, raw_sweeps
+from jaxflow.methods import lidar, network, nsfp, optimise
 from jaxflow.methods.interface import Method
 
 REGISTRY: dict[str, Method] = {}
@@ -47,12 +47,12 @@ def _nested_run(method: str, network_for):
   return build(method, network_for), nested(method).up
 
 
-for _method in (network_alone.METHOD, nsfp.METHOD,
+for _method in (network.METHOD, nsfp.METHOD,
                 # optimise refines the network's flow at every point (its module's owner may say
                 # so in its METHOD; until then it is said here).
                 dataclasses.replace(optimise.METHOD, refines_start=True),
                 # the lidar method runs the others through the registry (no import back up)
-                dataclasses.replace(raw_sweeps.METHOD, build=raw_sweeps.builder(_nested_run))):
+                dataclasses.replace(lidar.METHOD, build=lidar.builder(_nested_run))):
   register(_method)
 
 
