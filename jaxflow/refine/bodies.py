@@ -79,7 +79,7 @@ class Settings:
 
 
 @dataclasses.dataclass(frozen=True)
-class Found:
+class BodiesFit:
   """What rigid_bodies did: hypotheses found, points that kept their starting flow, and each
   point's motion (-1: it kept its starting flow; None when no motion was fitted)."""
   bodies: int
@@ -249,19 +249,19 @@ def _costs(motions, body_of, pc1, flow, label_N, nbr_NxK, target, settings):
 
 
 def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
-  """(flow N x 3 float32, Found): `flow_Nx3` made piecewise rigid where rigid motions fit pc2
+  """(flow N x 3 float32, BodiesFit): `flow_Nx3` made piecewise rigid where rigid motions fit pc2
   (module docstring). A flow that is not finite, or too few points, is returned unchanged with a
   note."""
   pc1, pc2 = np.asarray(pc1_Nx3, np.float64), np.asarray(pc2_Mx3, np.float64)
   flow = np.asarray(flow_Nx3, np.float64)
   if not np.all(np.isfinite(flow)) or not np.all(np.isfinite(pc1)) or \
       not np.all(np.isfinite(pc2)):
-    return flow.astype(np.float32), Found(0, len(pc1), "bodies: a non-finite input; the flow is "
-                                                      "returned unchanged")
+    return flow.astype(np.float32), BodiesFit(0, len(pc1), "bodies: a non-finite input; the flow "
+                                                          "is returned unchanged")
   if min(len(pc1), len(pc2)) < max(settings.min_support, 10):
-    return flow.astype(np.float32), Found(0, len(pc1), f"bodies: {len(pc1)} and {len(pc2)} "
-                                          "points are too few for rigid bodies; the flow is "
-                                          "returned unchanged")
+    return flow.astype(np.float32), BodiesFit(0, len(pc1), f"bodies: {len(pc1)} and {len(pc2)} "
+                                              "points are too few for rigid bodies; the flow is "
+                                              "returned unchanged")
   rng = np.random.default_rng(settings.seed)
   sample = _subset(np.arange(len(pc1)), settings.sample, rng)
   tree1 = neighbours.Tree(pc1)
@@ -270,8 +270,8 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   support, found = hypotheses(pc1[sample], flow[sample], settings, rng,
                               nbr_NxK if whole else None)
   if not found:
-    return flow.astype(np.float32), Found(0, len(pc1), "bodies: no rigid motion has support; "
-                                                      "the flow is returned unchanged")
+    return flow.astype(np.float32), BodiesFit(0, len(pc1), "bodies: no rigid motion has support; "
+                                                          "the flow is returned unchanged")
   target = registration.PlaneTarget(pc2)
   bins = round(360 / settings.view_bin_deg), round(180 / settings.view_bin_deg)
   view = View(pc2, "y", *bins, settings.hidden)  # the model frame: y up
@@ -304,5 +304,5 @@ def rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3, settings: Settings = Settings()):
   free = (cost_NxH[np.arange(len(pc1)), best_N] > start_cost + settings.free_margin) & (
     view.state(pc1 + out) != OUTSIDE)
   out[free] = flow[free]
-  return out.astype(np.float32), Found(len(found), int(free.sum()), motion_of=np.where(free, -1,
-                                                                                      best_N))
+  return out.astype(np.float32), BodiesFit(len(found), int(free.sum()),
+                                           motion_of=np.where(free, -1, best_N))
