@@ -21,7 +21,7 @@ def share_of_its_motion(seed: int, ego_speed: float, reverse: bool) -> float:
 
 
 # Hard cases of 32 beams, 8 m/s, 5 m beside the sensor (issue 57): without the vote
-# (along_min_length out of reach) seed 3's car is left still both ways (share 0: only its ends are
+# (along.min_length out of reach) seed 3's car is left still both ways (share 0: only its ends are
 # unexplained, too few points to make it a candidate) and seed 4's, the ego driving 3 m/s, slides
 # short along its side (0.81 forward, 0.67 backward); with it 0.98-1.00 (0.977 at the least).
 @pytest.mark.parametrize("reverse", [False, True], ids=["forward", "backward"])

@@ -12,20 +12,21 @@ import pytest
 
 from jaxflow import inference
 from jaxflow.data import synthetic_sweep as ss
-from jaxflow.errors import DataError
+from jaxflow.errors import ConfigError, DataError
 from jaxflow.lidar import ego, settings as lidar_settings, sweep
-from jaxflow.methods import lidar as lidar_method
+from jaxflow.methods import lidar as lidar_method, registry
+from jaxflow.runtime import configfile
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m.
-STILL = {"max_yaw_deg_per_s": 0.0, "search_per_s": 0.0, "margin": 1.0}  # no motion beats still
+STILL = {"max_yaw_deg_per_s": 0.0, "search.per_s": 0.0, "margin": 1.0}  # no motion beats still
 
 
 def test_the_per_second_settings_at_10_hz_are_the_per_frame_numbers():
   config = lidar_settings.Sweep()
   rate = config.frame_rate_hz
   assert rate == 10.0 and config.max_range == 35.0
-  assert config.objects.search_per_s / rate == 3.5  # metres a frame
+  assert config.objects.search.per_s / rate == 3.5  # metres a frame
   assert config.objects.max_yaw_deg_per_s / rate == 10.0  # degrees a frame
   for field, frame in (("search_yaw_deg_per_s", np.arange(-6.0, 6.01, 1.0)),
                        ("search_x_per_s", np.arange(-4.0, 4.01, 0.5)),
@@ -42,17 +43,19 @@ def pair():
   return ss.sweep_pair("val", 2, ss.Options(scale=0.2))  # ~21k points, 4 moving objects found
 
 
-def changed(frame_rate_hz=10.0, **objects):
-  base = lidar_settings.Sweep()
-  return dataclasses.replace(base, frame_rate_hz=frame_rate_hz,
-                             objects=dataclasses.replace(base.objects, **objects))
+def changed(frame_rate_hz=10.0, objects=None):
+  """The default settings at `frame_rate_hz`, with `objects` {dotted field of the objects block:
+  value} (as the command line's --method.lidar.objects.FIELD)."""
+  fields = {f"objects.{k}": v for k, v in (objects or {}).items()}
+  return configfile.replace_settings(lidar_settings.Sweep(frame_rate_hz=frame_rate_hz), fields,
+                                     "method.lidar")
 
 
 @pytest.fixture(scope="module")
 def flows(pair):
   """raw_sweep_flow's (flow, info) of the pair with the default settings and with STILL's."""
   return {"default": sweep.raw_sweep_flow(None, pair.pc1, pair.pc2),
-          "still": sweep.raw_sweep_flow(None, pair.pc1, pair.pc2, settings=changed(**STILL))}
+          "still": sweep.raw_sweep_flow(None, pair.pc1, pair.pc2, settings=changed(objects=STILL))}
 
 
 def test_a_setting_changes_the_flow_through_the_api(pair, flows):
@@ -64,7 +67,7 @@ def test_a_setting_changes_the_flow_through_the_api(pair, flows):
   # At 1000 Hz the same per-second limits are 0.1 deg and 3.5 cm a frame: fewer objects move.
   fast = sweep.raw_sweep_flow(None, pair.pc1, pair.pc2, settings=changed(1000.0))[1]
   assert len(fast.objects.moved) < len(info.objects.moved)
-  settings = changed(**STILL)  # the pipeline's settings: the lidar method's, running no method
+  settings = changed(objects=STILL)  # the pipeline's: the lidar method's, running no method
   predictor = inference.load_predictor(method="lidar", method_settings=settings)
   api = inference.predict_flow(pair.pc1, pair.pc2, predictor=predictor, up="z")
   assert settings.objects.max_yaw_deg_per_s == 0.0  # read, not changed
@@ -149,7 +152,7 @@ def test_print_config_lists_the_sweep_settings_with_units(runs):
     assert "  # " in line, line  # every field has its comment
   assert ("method.lidar.objects.max_yaw_deg_per_s = 5.0  # deg/s: an object turning faster is "
           "refused" in lines)  # the override applied
-  assert ("method.lidar.objects.search_per_s = 35.0  # m/s: an object's translation search, +- "
+  assert ("method.lidar.objects.search.per_s = 35.0  # m/s: an object's translation search, +- "
           "this" in lines)
   assert any(l.startswith("method.lidar.frame_rate_hz = 10.0  # ") for l in lines)
 
@@ -169,13 +172,15 @@ def test_a_wrong_sweep_field_is_one_line_and_exit_2(runs, run, says):
 
 
 def test_a_bad_value_is_refused_naming_its_field():
-  with pytest.raises(ValueError, match=r"objects\.cell: -0\.3"):
+  with pytest.raises(ValueError, match=r"lidar objects\.cell must be a finite number >= 0, got -"):
     lidar_settings.Objects(cell=-0.3)
-  with pytest.raises(ValueError, match=r"ego\.gicp_iterations: 2\.5"):
+  with pytest.raises(ValueError, match=r"lidar ego\.gicp_iterations must be an integer >= 0, got"):
     lidar_settings.Ego(gicp_iterations=2.5)
-  with pytest.raises(ValueError, match=r"ground\.surface_windows"):
+  with pytest.raises(ValueError, match=r"lidar ground\.surface_windows must be"):
     lidar_settings.Ground(surface_windows=(5, float("nan")))
-  with pytest.raises(ValueError, match="frame_rate_hz must be > 0"):
+  with pytest.raises(ValueError, match="lidar objects.person.top must be"):
+    lidar_settings.Person(top=(1.0,))
+  with pytest.raises(ValueError, match="lidar frame_rate_hz must be > 0"):
     lidar_settings.Sweep(frame_rate_hz=0.0)
   lidar_settings.Ground(min_sensor_height=-2.0)  # signed fields may be negative
   with pytest.raises(DataError, match=r"pc1: raw_sweep_flow takes N x 3 points, got shape \(10, "):
@@ -184,15 +189,46 @@ def test_a_bad_value_is_refused_naming_its_field():
     sweep.raw_sweep_flow(None, np.zeros((10, 3)), np.zeros((10, 3)), settings={"max_range": 5})
 
 
+def test_a_sub_blocks_field_is_set_by_its_dotted_path():
+  """--method.lidar.objects.person.radius=0.6 (the command line's string) reaches the objects
+  block's Person, the rest left at their defaults; a bad value is refused naming the flag."""
+  chosen = registry.settings("lidar", fields={"objects.person.radius": "0.6",
+                                              "objects.icp.scales": "(0.3, 0.1)"})
+  assert chosen.objects.person == lidar_settings.Person(radius=0.6)
+  assert chosen.objects.icp == lidar_settings.Icp(scales=(0.3, 0.1))
+  assert chosen.objects.search == lidar_settings.Search() and chosen.objects.cell == 0.3
+  with pytest.raises(ConfigError, match=r"^method\.lidar\.objects\.person\.radius: lidar "
+                     r"objects\.person\.radius must be a finite number >= 0, got -1\.0$"):
+    registry.settings("lidar", fields={"objects.person.radius": "-1"})
+  with pytest.raises(ConfigError, match=r"objects\.person_radius: no field 'person_radius'"):
+    registry.settings("lidar", fields={"objects.person_radius": "0.6"})  # the flat name is gone
+
+
+def test_every_setting_is_checked_by_its_own_block():
+  """Each field of each block refuses a value of no kind in its block's __post_init__, naming the
+  setting by its path under the lidar method (lidar objects.person.radius)."""
+
+  def blocks(cls, path):
+    yield cls, path
+    for f in dataclasses.fields(cls):
+      if dataclasses.is_dataclass(f.default):
+        yield from blocks(type(f.default), f"{path}{f.name}.")
+
+  for cls, path in blocks(lidar_settings.Sweep, "lidar "):
+    for f in dataclasses.fields(cls):
+      with pytest.raises(ValueError, match=re.escape(f"{path}{f.name} must be")):
+        cls(**{f.name: "x"})
+
+
 def test_evaluate_takes_the_lidar_methods_fields():
   """evaluate.py --method lidar --method.lidar.FIELD=V (README): the field set, as --print_config
   lists it; a lidar field with another method is refused."""
   env = {**os.environ, "JAX_PLATFORMS": "cpu"}
   run = lambda *args: subprocess.run([sys.executable, "evaluate.py", *args], cwd=ROOT, env=env,
                                      capture_output=True, text=True, timeout=300)
-  given = run("--method", "lidar", "--method.lidar.objects.person_size=0.9", "--print_config")
+  given = run("--method", "lidar", "--method.lidar.objects.person.size=0.9", "--print_config")
   assert given.returncode == 0, given.stderr[-2000:]
-  assert "method.lidar.objects.person_size = 0.9  # " in given.stdout
+  assert "method.lidar.objects.person.size = 0.9  # " in given.stdout
   assert "method.lidar.objects.cell = 0.3  # " in given.stdout
   other = run("--method", "network", "--method.lidar.max_range=20", "--print_config")
   assert other.returncode == 2 and "the method is network" in other.stderr

@@ -8,19 +8,19 @@ A car passing beside the sensor shows it mostly its long flat side, which matche
 along its length: a distance cost is flat along it but near its ends (few returns), and only its
 ends are unexplained (too few points to make it a candidate). What fixes the car along its length
 is its extent: where its side (and each height band of it: body, cabin) begins and ends. Seen
-along the object's long axis, the cells (`along_bin` m along it, `along_band` m high) its points
+along the object's long axis, the cells (`along.bin` m along it, `along.band` m high) its points
 occupy in pc1 and those pc2's points near it occupy (each band's returns joined into the stretch
 they sample) are compared at every shift within +-`reach` m: each pair of occupied cells votes for
 their difference, once a cell whatever its count of returns (their spacing is the sensor's, not
 the car's). The translation most cells agree on is the shift. The projection of a rigid
 translation on any axis is the shift of the projected shape, so the vote holds for any axis whose
-profile has ends; it is asked only of a group `along_min_length` m long or more whose own lines
-(seen from above) barely face along its axis (`along_faces`): a flat side. An end face seen fixes
+profile has ends; it is asked only of a group `along.min_length` m long or more whose own lines
+(seen from above) barely face along its axis (`along.faces`): a flat side. An end face seen fixes
 an object along its axis without it, and a profile seen from another angle changes. pc2's points
 that pc1's other points explain (what stands beside the object) do not vote. The vote makes the
 group a candidate, and starts its motion's fit (adopt), kept only where the costs do not clearly
 refute it and it beats standing still clearly (jaxflow.lidar.judge). The names are fields of
-jaxflow.lidar.settings.Objects.
+jaxflow.lidar.settings.Objects (`along.*`: its Along block).
 """
 
 import dataclasses
@@ -50,15 +50,15 @@ def long_axis(points_Kx3) -> tuple[np.ndarray, float]:
 
 def _cells(along_K, height_K, lo: float, size: int, s) -> np.ndarray:
   """Bool (height bands x `size`): the cells along the axis (from `lo`) that points occupy, and
-  those between two of a band's at most `along_gap` m apart: a ring's returns become the stretch
+  those between two of a band's at most `along.gap` m apart: a ring's returns become the stretch
   they sample, whatever their spacing."""
-  i = np.floor((along_K - lo) / s.along_bin).astype(np.int64)
-  k = np.floor(height_K / s.along_band).astype(np.int64)
+  i = np.floor((along_K - lo) / s.along.bin).astype(np.int64)
+  k = np.floor(height_K / s.along.band).astype(np.int64)
   keep = (i >= 0) & (i < size)
   out = np.zeros((int(k.max() - k.min()) + 1 if len(k) else 1, size), bool)
   out[k[keep] - k.min(), i[keep]] = True
   band, at = np.nonzero(out)  # by band, then along
-  joined = (band[1:] == band[:-1]) & (at[1:] - at[:-1] <= s.along_gap / s.along_bin)
+  joined = (band[1:] == band[:-1]) & (at[1:] - at[:-1] <= s.along.gap / s.along.bin)
   runs = np.zeros((len(out), size + 1), np.int64)
   np.add.at(runs, (band[:-1][joined], at[:-1][joined]), 1)
   np.add.at(runs, (band[1:][joined], at[1:][joined]), -1)
@@ -67,7 +67,7 @@ def _cells(along_K, height_K, lo: float, size: int, s) -> np.ndarray:
 
 def vote(points_Kx3, others_Mx3, axis_2, reach: float, settings):
   """(shift m along `axis_2`, support) of a group (`points_Kx3`, frame 1) against pc2's points
-  near it (`others_Mx3`, frame 1; only those within `along_cross` m across the axis of the group's
+  near it (`others_Mx3`, frame 1; only those within `along.cross` m across the axis of the group's
   band and within its heights count): the shift within +-`reach` whose occupied cells match most of
   pc2's, and the share of the group's occupied cells it matches; None when no cell matches."""
   s = settings
@@ -75,26 +75,26 @@ def vote(points_Kx3, others_Mx3, axis_2, reach: float, settings):
   across = np.array([-axis_2[1], axis_2[0], 0.0])
   a1, c1, z1 = points_Kx3 @ axis, points_Kx3 @ across, points_Kx3[:, 2]
   a2, c2, z2 = others_Mx3 @ axis, others_Mx3 @ across, others_Mx3[:, 2]
-  near = ((c2 > c1.min() - s.along_cross) & (c2 < c1.max() + s.along_cross)
-          & (z2 > z1.min() - s.along_band) & (z2 < z1.max() + s.along_band)
-          & (a2 > a1.min() - reach - s.along_bin) & (a2 < a1.max() + reach + s.along_bin))
+  near = ((c2 > c1.min() - s.along.cross) & (c2 < c1.max() + s.along.cross)
+          & (z2 > z1.min() - s.along.band) & (z2 < z1.max() + s.along.band)
+          & (a2 > a1.min() - reach - s.along.bin) & (a2 < a1.max() + reach + s.along.bin))
   if not near.any():
     return None
-  lo = a1.min() - reach - s.along_bin
-  size = int(np.ceil((a1.max() - lo + reach) / s.along_bin)) + 2
+  lo = a1.min() - reach - s.along.bin
+  size = int(np.ceil((a1.max() - lo + reach) / s.along.bin)) + 2
   z0 = min(z1.min(), z2[near].min())
   mine = _cells(a1, z1 - z0, lo, size, s)
   theirs = _cells(a2[near], z2[near] - z0, lo, size, s)
   bands = max(len(mine), len(theirs))
   mine = np.pad(mine, ((0, bands - len(mine)), (0, 0)))
   theirs = np.pad(theirs, ((0, bands - len(theirs)), (0, 0)))
-  steps = int(round(reach / s.along_bin))
+  steps = int(round(reach / s.along.bin))
   shifts = np.arange(-steps, steps + 1)
   score = np.array([np.logical_and(np.roll(mine, j, axis=1), theirs).sum() for j in shifts])
   if score.max() == 0:
     return None
   best = shifts[score == score.max()]
-  return float(best.mean() * s.along_bin), float(score.max() / mine.sum())
+  return float(best.mean() * s.along.bin), float(score.max() / mine.sum())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,18 +116,18 @@ def before(pc1_Nx3, target1, above1_N, points_Mx3, reach: float) -> Before:
 
 def group_vote(idx, pc1_Nx3, points_Mx3, seen: Before, reach: float, settings) -> Vote | None:
   """The vote of pc1's group `idx` against pc2's points (`points_Mx3`, frame 1) that no other pc1
-  point explains; None for a group under `along_min_length` m long, one whose own lines face
-  along its axis (`along_faces`: an end face fixes it), or a vote under `along_support`."""
+  point explains; None for a group under `along.min_length` m long, one whose own lines face
+  along its axis (`along.faces`: an end face fixes it), or a vote under `along.support`."""
   pts = pc1_Nx3[idx]
   axis, length = long_axis(pts)
   axis = np.array([axis[0], axis[1], 0.0])
-  if length < settings.along_min_length or facing(seen.target, pts, axis) >= settings.along_faces:
+  if length < settings.along.min_length or facing(seen.target, pts, axis) >= settings.along.faces:
     return None
   owner = seen.owner
   free = owner < 0
   free[owner >= 0] = np.isin(owner[owner >= 0], idx)
   found = vote(pts, points_Mx3[free], axis[:2], reach, settings)
-  if found is None or found[1] < settings.along_support:
+  if found is None or found[1] < settings.along.support:
     return None
   return Vote(axis, *found)
 
@@ -161,7 +161,7 @@ def adopt(scene, points_Kx3, truncate: float, found: Vote, chosen, refine):
   chosen motion must too."""
   (name, motion, costs), still = chosen
   s = scene.settings
-  if abs(shift_of(motion, points_Kx3, found) - found.shift) <= s.along_bin / 2:
+  if abs(shift_of(motion, points_Kx3, found) - found.shift) <= s.along.bin / 2:
     return chosen[0]
   moved = settle(scene.target, points_Kx3, refine(with_shift(motion, points_Kx3, found)), found, s)
   if not scene.plausible(moved, points_Kx3):
@@ -186,8 +186,8 @@ def facing(target, points_Kx3, axis) -> float:
 
 def settle(target, points_Kx3, motion: rigid.Motion, found: Vote, settings) -> rigid.Motion:
   """`motion` (of a long object's points), its move along the axis the vote's where the lines it
-  lands on face along the axis under `along_faces` (facing): a flat side, along which a fit
+  lands on face along the axis under `along.faces` (facing): a flat side, along which a fit
   slides (the pull of its few point-to-point matches); else `motion` as the shape fixes it."""
-  if facing(target, motion.apply(points_Kx3), found.axis) < settings.along_faces:
+  if facing(target, motion.apply(points_Kx3), found.axis) < settings.along.faces:
     return with_shift(motion, points_Kx3, found)
   return motion

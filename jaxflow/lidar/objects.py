@@ -7,7 +7,7 @@ world then overlaps itself and every moving thing does not. The non-ground point
 above the ground are grouped into objects by connectivity seen from above (cells of `cell`); each
 object with enough unexplained points (a share of its points, or a count) gets motions from
 several starts (standing still, the caller's flow, e.g. the network's, fitted rigidly, and the best
-translation of a search over +-`search_per_s` / `frame_rate_hz` m), each refined by a bird's-eye
+translation of a search over +-`search.per_s` / `frame_rate_hz` m), each refined by a bird's-eye
 ICP (yaw and translation, point-to-line: jaxflow.geometry.registration; its height follows the
 ground), and keeps the motion that fits pc2 best, standing still unless another fits clearly
 better (jaxflow.lidar.judge); a kept motion is refitted on all the object's points. A walking
@@ -52,16 +52,16 @@ def _per_point(target: ego.Target, moved_Kx3) -> np.ndarray:
 
 def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion, settings) -> rigid.Motion:
   """Yaw and horizontal translation of `start` refined seen from above (robust, the scale
-  shrinking every 4 rounds: `icp_scales`), `rounds` rounds at most, turning about the object's
+  shrinking every 4 rounds: `icp.scales`), `icp.rounds` rounds at most, turning about the object's
   centre."""
 
   def rows_of(moved_Kx3, scale):
     rows = target.bev_rows(moved_Kx3)
-    gate = settings.icp_gate * scale + settings.icp_gate_margin
+    gate = settings.icp.gate * scale + settings.icp.gate_margin
     return dataclasses.replace(rows, gate=np.abs(rows.residual) < gate)
 
-  last = len(settings.icp_scales) - 1
-  scales = [settings.icp_scales[min(i // 4, last)] for i in range(settings.rounds)]
+  last = len(settings.icp.scales) - 1
+  scales = [settings.icp.scales[min(i // 4, last)] for i in range(settings.icp.rounds)]
   return registration.robust_fit(points_Kx3, start, rows_of, scales, dof="yaw_xy",
                                  about_centroid=True, damping=1e-3, converged=1e-5)
 
@@ -70,8 +70,8 @@ def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
   """The best horizontal translation within +-`search` m (3-D cost; coarse, then fine)."""
   best = np.zeros(3)
   truncate = settings.truncate
-  coarse = settings.search_coarse_step
-  for half, step in ((search, coarse), (coarse, settings.search_step / 2)):
+  coarse = settings.search.coarse_step
+  for half, step in ((search, coarse), (coarse, settings.search.step / 2)):
     steps = np.arange(-half, half + 1e-9, step)
     dx, dy = np.meshgrid(steps, steps, indexing="ij")
     shifts = best + np.c_[dx.ravel(), dy.ravel(), np.zeros(dx.size)]
@@ -85,10 +85,10 @@ def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
 def _moving_parts(scene, points_Kx3, motion, truncate) -> np.ndarray:
   """Bool K: the points of an object that move with `motion`. A group seen from above can join a
   moving car to the parked car beside it (a gap under two cells): split it by connectivity at
-  `part_cell`, without bridging, and keep still every part of `min_points` that standing still
+  `part.cell`, without bridging, and keep still every part of `min_points` that standing still
   explains clearly better than the motion (the test the motion passed against it)."""
   s = scene.settings
-  parts = groups.cell_components(points_Kx3, np.ones(len(points_Kx3), bool), s.part_cell,
+  parts = groups.cell_components(points_Kx3, np.ones(len(points_Kx3), bool), s.part.cell,
                                  bridge=False)
   keep = np.ones(len(points_Kx3), bool)
   if parts.count < 2:
@@ -120,7 +120,7 @@ class _Scene:
   before: object  # what pc1 shows a long object's vote (jaxflow.lidar.along.Before)
   visibility: views.View  # what pc2's sensor saw (a placement it could not see: no evidence)
   ego_motion: rigid.Motion
-  search: float  # m: an object's translation search, +- this (a frame's worth of search_per_s)
+  search: float  # m: an object's translation search, +- this (a frame's worth of search.per_s)
   max_yaw_deg: float  # degrees an object may turn in a frame
   settings: object  # the objects block
 
@@ -132,32 +132,32 @@ class _Scene:
     yaw = abs(np.degrees(np.arctan2(motion.rotation[1, 0], motion.rotation[0, 0])))
     centre = points_Kx3.mean(0)
     shift = np.linalg.norm(motion.apply(centre[None])[0] - centre)
-    return yaw <= self.max_yaw_deg and shift <= self.search + self.settings.search_slack
+    return yaw <= self.max_yaw_deg and shift <= self.search + self.settings.search.slack
 
 
 def _is_person(idx, pc1_Nx3, height_N, s) -> bool:
   """Whether a group is shaped as a person: narrow from above, upright, a person's height."""
   pts = pc1_Nx3[idx]
   return bool(len(idx) >= s.min_points
-              and np.ptp(pts[:, :2], axis=0).max() <= s.person_size
-              and s.person_top[0] <= height_N[idx].max() <= s.person_top[1]
-              and np.ptp(height_N[idx]) >= s.person_upright)
+              and np.ptp(pts[:, :2], axis=0).max() <= s.person.size
+              and s.person.top[0] <= height_N[idx].max() <= s.person.top[1]
+              and np.ptp(height_N[idx]) >= s.person.upright)
 
 
 def _person_shift(scene, pts_Kx3):
   """A person's horizontal motion: the centroid of pc2's points (above the ground, from above
-  within `person_radius` of the moved centre and at its height) minus the group's, iterated; None
-  when too few points of pc2 are there or the shift is under `person_min_shift`."""
+  within `person.radius` of the moved centre and at its height) minus the group's, iterated; None
+  when too few points of pc2 are there or the shift is under `person.min_shift`."""
   s = scene.settings
   centre, shift = pts_Kx3.mean(0), np.zeros(3)
   above2 = scene.tree.points
-  for _ in range(s.person_rounds):
+  for _ in range(s.person.rounds):
     d = np.linalg.norm(above2[:, :2] - (centre[:2] + shift[:2]), axis=1)
-    near = (d < s.person_radius) & (np.abs(above2[:, 2] - centre[2]) < s.person_top[1] / 2)
-    if near.sum() < max(s.person_least_matches, len(pts_Kx3) * s.person_matched_share):
+    near = (d < s.person.radius) & (np.abs(above2[:, 2] - centre[2]) < s.person.top[1] / 2)
+    if near.sum() < max(s.person.least_matches, len(pts_Kx3) * s.person.matched_share):
       return None
     shift[:2] = above2[near, :2].mean(0) - centre[:2]
-  if np.linalg.norm(shift) < s.person_min_shift:
+  if np.linalg.norm(shift) < s.person.min_shift:
     return None
   return rigid.Motion(np.eye(3), shift)
 
@@ -187,12 +187,12 @@ def _novelty(scene, pts_Kx3, motion, truncate) -> float:
 
 
 def _new_place(scene, pts_Kx3, fit) -> bool:
-  """Whether a part's motion takes it from a place pc2 shows empty (mean cost at least `vacated`)
-  to one pc1 showed empty (`_novelty`), and the part is object-sized (`part_size` wide)."""
+  """Whether a part's motion takes it from a place pc2 shows empty (mean cost >= `part.vacated`)
+  to one pc1 showed empty (`_novelty`), and the part is object-sized (`part.size` wide)."""
   s = scene.settings
   _, motion, truncate = fit
-  return bool(judge.mean(scene.costs(pts_Kx3, truncate), s.min_seen) >= s.vacated
-              and np.ptp(pts_Kx3[:, :2], axis=0).max() >= s.part_size
+  return bool(judge.mean(scene.costs(pts_Kx3, truncate), s.min_seen) >= s.part.vacated
+              and np.ptp(pts_Kx3[:, :2], axis=0).max() >= s.part.size
               and _novelty(scene, pts_Kx3, motion, truncate) >= s.novelty)
 
 
@@ -210,14 +210,14 @@ def _onto_what_stood(scene, pts_Kx3, fit) -> bool:
 
 def _unexplained_parts(idx, unexplained_N, pc1_Nx3, s):
   """Indices of each group of a group's unexplained points (connected cells, no bridging, with
-  every point of the group in their cells) of `min_points` or more, but at most `part_share` of
+  every point of the group in their cells) of `min_points` or more, but at most `part.share` of
   the group (a larger one is the group again)."""
   seeds = unexplained_N[idx]
   if seeds.sum() < s.min_points:
     return []
   parts = groups.cell_components(pc1_Nx3[idx], seeds, s.cell, bridge=False)
   return [idx[mine] for _, mine in parts.members()
-          if s.min_points <= len(mine) <= s.part_share * len(idx)]
+          if s.min_points <= len(mine) <= s.part.share * len(idx)]
 
 
 def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
@@ -228,7 +228,7 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   fits its own points better than standing still by chance alone."""
   s = scene.settings
   shuffled = pts_Kx3[rng.permutation(len(pts_Kx3))]
-  sample, judged = shuffled[0::2][:s.search_points], shuffled[1::2]
+  sample, judged = shuffled[0::2][:s.search.points], shuffled[1::2]
   starts = {"search": _search(scene.tree, sample, scene.search, s)}
   if given_Kx3 is not None:
     starts["network"] = rigid.kabsch(pts_Kx3, given_Kx3)
@@ -302,7 +302,7 @@ def _scene(pc1, pc2_Mx3, ground1, ground2_M, ego_motion, s, ego_settings, rate, 
   return _Scene(target, neighbours.Tree(above2), _per_point(before, above2) > s.unexplained,
                 along.before(pc1, before, ~ground1, above2, s.unexplained),
                 views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden, sensor2),
-                ego_motion, s.search_per_s / rate, s.max_yaw_deg_per_s / rate, s)
+                ego_motion, s.search.per_s / rate, s.max_yaw_deg_per_s / rate, s)
 
 
 @dataclasses.dataclass

@@ -1,7 +1,10 @@
 r"""The raw-sweep pipeline's settings (the `lidar` method: ground, ego-motion, moving objects), one
-frozen dataclass a block, as every method's settings (jaxflow.methods.registry).
+frozen dataclass a block, as every method's settings (jaxflow.methods.registry); the objects
+block's families (part, search, icp, person, along) are blocks of their own. Each block checks its
+own fields (__post_init__: a ValueError naming the setting, `lidar objects.person.radius`).
 
     python -m jaxflow.predict a.npy b.npy --lidar --out f.npy --method.lidar.objects.cell=0.25
+    python -m jaxflow.predict a.npy b.npy --lidar --method.lidar.objects.person.radius=0.6
     python -m jaxflow.predict --method lidar --print_config      # every field, with its unit
     flow, info = raw_sweep_flow(None, pc1, pc2, settings=Sweep(max_range=50.0))   # from Python
     dataclasses.replace(s, objects=dataclasses.replace(s.objects, cell=0.25))     # one field
@@ -15,37 +18,40 @@ benchmarks/REAL_SWEEPS.md and benchmarks/sweeps.py.
 import dataclasses
 import math
 
-# Fields that may be negative: a height below the origin, the grid searches' lower ends.
-_SIGNED = {"min_sensor_height", "search_yaw_deg_per_s", "search_x_per_s", "search_y_per_s",
-           "search_x", "search_y", "search_z"}
-# Tuples whose length is the user's: the passes and windows of a coarse-to-fine search.
-_VARIABLE_LENGTH = {"scales", "surface_windows", "icp_scales", "refine_steps"}
+
+def _finite(value) -> bool:
+  return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _check(block):
-  """A ValueError naming the field for a value of another kind than its default's, or a negative
-  or non-finite number where the field is not signed."""
-  name = type(block).__name__.lower()
-  for f in dataclasses.fields(block):
-    value, default = getattr(block, f.name), f.default
-    if dataclasses.is_dataclass(default):
-      ok = type(value) is type(default)
-    elif isinstance(default, bool):
-      ok = isinstance(value, bool)
-    elif isinstance(default, int):
-      ok = isinstance(value, int) and not isinstance(value, bool) and value >= 0
-    elif isinstance(default, float):
-      ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-            and (value >= 0 or f.name in _SIGNED))
-    else:  # a tuple: of numbers (or of tuples of them), as long as its default when that is fixed
-      flat = [x for v in value for x in (v if isinstance(v, tuple) else (v,))] if isinstance(
-        value, tuple) else None
-      ok = (flat is not None and all(isinstance(x, (int, float)) and math.isfinite(x)
-                                     and (x >= 0 or f.name in _SIGNED) for x in flat)
-            and (len(value) == len(default) or f.name in _VARIABLE_LENGTH) and len(value) > 0)
-    if not ok:
-      raise ValueError(f"lidar {name}.{f.name}: {value!r} is not a valid value (default "
-                       f"{default!r})")
+def _sizes(value, length=None) -> bool:
+  """A non-empty tuple of numbers >= 0 (of `length` of them where given)."""
+  return (isinstance(value, tuple) and len(value) > 0 and (length is None or len(value) == length)
+          and all(_finite(x) and x >= 0 for x in value))
+
+
+# (what a value must be, its test): the kinds of the settings below.
+_NUMBER = "a finite number >= 0", lambda v: _finite(v) and v >= 0
+_SIGNED = "a finite number", _finite
+_COUNT = "an integer >= 0", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0
+_FLAG = "True or False", lambda v: isinstance(v, bool)
+_SIZES = "a non-empty tuple of numbers >= 0", _sizes
+_GRID = ("(lowest, highest, step) of finite numbers",
+         lambda v: isinstance(v, tuple) and len(v) == 3 and all(map(_finite, v)))
+_PASSES = ("a non-empty tuple of (voxel, neighbours, largest match), numbers >= 0",
+           lambda v: isinstance(v, tuple) and len(v) > 0 and all(_sizes(p, 3) for p in v))
+
+
+def _block(cls):
+  return f"a {cls.__name__}", lambda v: type(v) is cls
+
+
+def _need(block, path: str, kind, *names):
+  """A ValueError naming the setting (`path` + NAME) of the first of `names` not of `kind`."""
+  must, ok = kind
+  for name in names:
+    value = getattr(block, name)
+    if not ok(value):
+      raise ValueError(f"{path}{name} must be {must}, got {value!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,7 +81,14 @@ class Ground:
   up_check_tilt_deg: float = 45.0  # deg: a plane tilted more from --up stands upright
 
   def __post_init__(self):
-    _check(self)
+    _need(self, "lidar ground.", _NUMBER, "margin", "plane_range", "cell", "lowest", "inlier",
+          "max_tilt_deg", "surface_cell", "surface_above", "surface_near", "surface_extent",
+          "max_sensor_height", "max_ground_fraction", "up_check_share", "up_check_over_ground",
+          "up_check_tilt_deg")
+    _need(self, "lidar ground.", _SIGNED, "min_sensor_height")
+    _need(self, "lidar ground.", _COUNT, "iterations", "surface_rounds", "up_check_points",
+          "up_check_planes")
+    _need(self, "lidar ground.", _SIZES, "surface_windows")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,7 +114,12 @@ class Ego:
   search_y_per_s: tuple = (-15.0, 15.0, 5.0)  # m/s: the coarse search's sideways motions
 
   def __post_init__(self):
-    _check(self)
+    _need(self, "lidar ego.", _NUMBER, "residual_voxel", "truncate", "inlier", "plausible_inliers",
+          "bev_cell", "max_match", "line", "blob")
+    _need(self, "lidar ego.", _COUNT, "gicp_iterations", "trim_rounds", "residual_neighbours",
+          "search_sample", "neighbours")
+    _need(self, "lidar ego.", _GRID, "search_yaw_deg_per_s", "search_x_per_s", "search_y_per_s")
+    _need(self, "lidar ego.", _PASSES, "scales")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,25 +140,109 @@ class Sensor:
   min_gain: float = 0.05
 
   def __post_init__(self):
-    _check(self)
+    _need(self, "lidar sensor.", _FLAG, "find")
+    _need(self, "lidar sensor.", _NUMBER, "fine_bin_deg", "min_range", "min_gain")
+    _need(self, "lidar sensor.", _COUNT, "coarse", "least_points", "sample")
+    _need(self, "lidar sensor.", _GRID, "search_x", "search_z", "search_y")
+    _need(self, "lidar sensor.", _SIZES, "refine_steps")
+
+
+@dataclasses.dataclass(frozen=True)
+class Part:
+  """A group kept still may join a mover to what stands beside it: its unexplained points' own
+  groups (parts) are fitted, and a part's motion is kept where it lands on `novelty` new points,
+  leaves a place whose cost is `vacated` and is `size` wide."""
+  cell: float = 0.15  # m: a moved object's parts, connected cells (no bridging)
+  share: float = 0.9  # a part holding more of its group is the group again: not fitted
+  vacated: float = 0.6  # a part's least mean cost standing still (pc2 shows its place empty)
+  size: float = 1.0  # m: a part's least width seen from above
+
+  def __post_init__(self):
+    _need(self, "lidar objects.part.", _NUMBER, "cell", "share", "vacated", "size")
+
+
+@dataclasses.dataclass(frozen=True)
+class Search:
+  """An object's translation search (coarse, then fine) on a sample of its points."""
+  per_s: float = 35.0  # m/s: an object's translation search, +- this
+  step: float = 0.25  # m: the translation search's fine step (twice that first)
+  coarse_step: float = 0.5  # m: its coarse step (the fine one searches +- this)
+  points: int = 150  # points at most a motion is searched on (half judge it)
+  slack: float = 0.5  # m: a refined motion may reach this beyond the search
+
+  def __post_init__(self):
+    _need(self, "lidar objects.search.", _NUMBER, "per_s", "step", "coarse_step", "slack")
+    _need(self, "lidar objects.search.", _COUNT, "points")
+
+
+@dataclasses.dataclass(frozen=True)
+class Icp:
+  """An object's bird's-eye ICP (yaw and horizontal translation, robust)."""
+  rounds: int = 15  # iterations of an object's bird's-eye ICP
+  scales: tuple = (0.3, 0.15, 0.08, 0.05)  # m: its robust scales, 4 rounds each
+  gate: float = 3.0  # scales (plus gate_margin): its rows farther are left out
+  gate_margin: float = 0.2  # m
+
+  def __post_init__(self):
+    _need(self, "lidar objects.icp.", _COUNT, "rounds")
+    _need(self, "lidar objects.icp.", _SIZES, "scales")
+    _need(self, "lidar objects.icp.", _NUMBER, "gate", "gate_margin")
+
+
+@dataclasses.dataclass(frozen=True)
+class Person:
+  """A walking person moves 5-17 cm a frame, under `unexplained`: an upright person-sized group
+  gets the shift of the centroid of pc2's points around it, kept when it beats standing still."""
+  size: float = 1.2  # m: a person's group is at most this wide seen from above
+  top: tuple = (1.0, 2.3)  # m above the ground: where a person's highest point lies
+  upright: float = 0.9  # m: a person's points span at least this height
+  radius: float = 0.8  # m: pc2's points this near the moved centre (from above) are his
+  rounds: int = 3  # centroid shifts, each from the last
+  least_matches: int = 5  # pc2's points there at least (fewer: no shift) ...
+  matched_share: float = 1 / 3  # ... and at least this share of the group's count
+  min_shift: float = 0.05  # m: a smaller shift is standing still
+
+  def __post_init__(self):
+    _need(self, "lidar objects.person.", _NUMBER, "size", "upright", "radius", "matched_share",
+          "min_shift")
+    _need(self, "lidar objects.person.", _COUNT, "rounds", "least_matches")
+    _need(self, "lidar objects.person.", ("(lowest, highest), numbers >= 0",
+                                          lambda v: _sizes(v, 2)), "top")
+
+
+@dataclasses.dataclass(frozen=True)
+class Along:
+  """A long object sliding along its own flat side (a car passing beside the sensor) is fixed along
+  its length by its ends: the cells it occupies along its axis vote for its shift
+  (jaxflow.lidar.along), which makes it a candidate and starts its fit, kept where the costs do
+  not clearly refute it."""
+  min_length: float = 2.5  # m: a group at least this long (seen from above) gets the vote
+  bin: float = 0.025  # m: the vote's cells along the axis (and its shifts' step)
+  band: float = 0.3  # m: ... and their height
+  # m: cells between two returns of a band this near are occupied too, so that the ends decide
+  # the vote, not the returns' spacing (a ring's on a car's side: centimetres near, more far)
+  gap: float = 0.3
+  cross: float = 0.5  # m: pc2's points this far beyond the group's band across the axis vote
+  support: float = 0.5  # share of the group's cells the vote's shift must match
+  # Mean squared along-axis part of the normals of a long object's lines (from above) below which
+  # it shows a flat side only (a car beside the sensor: 0.01-0.03; seen from its end: 0.5-0.9):
+  # only then it gets the vote, and its fit keeps the vote's shift; else its end face fixes it.
+  faces: float = 0.1
+
+  def __post_init__(self):
+    _need(self, "lidar objects.along.", _NUMBER, "min_length", "bin", "band", "gap", "cross",
+          "support", "faces")
 
 
 @dataclasses.dataclass(frozen=True)
 class Objects:
   """Moving objects (jaxflow.lidar.objects): groups from above, their motions, the judge."""
   cell: float = 0.3  # m: objects are connected cells from above (a cell's gap bridged)
-  part_cell: float = 0.15  # m: a moved object's parts, connected cells (no bridging)
   object_top: float = 2.6  # m above the ground: higher points join no object
   min_points: int = 12  # points of an object (and of a part kept still)
-  # A group kept still may join a mover to what stands beside it: its unexplained points' own
-  # groups (parts) are fitted, and a part's motion is kept where it lands on `novelty` new
-  # points, leaves a place whose cost is `vacated` and is `part_size` wide.
-  part_share: float = 0.9  # a part holding more of its group is the group again: not fitted
-  # Share of the pc2 points a motion lands on that pc1 did not see there (asked too of any
-  # object moved farther than its own width: a mover that far has left its own place).
+  # Share of the pc2 points a motion lands on that pc1 did not see there (asked of a part, and of
+  # any object moved farther than its own width: a mover that far has left its own place).
   novelty: float = 0.7
-  vacated: float = 0.6  # a part's least mean cost standing still (pc2 shows its place empty)
-  part_size: float = 1.0  # m: a part's least width seen from above
   max_high: float = 0.25  # share above object_top beyond which a group is structure
   max_size: float = 14.0  # m: a larger group is structure (a facade), never moved
   unexplained: float = 0.15  # m from ego-compensated pc2 (from above): unexplained
@@ -148,11 +250,6 @@ class Objects:
   # ... unless it has this many: a car beside the sensor, sliding along its own side, is explained
   # but at its ends.
   many_unexplained: int = 100  # unexplained points that make any object a candidate
-  search_per_s: float = 35.0  # m/s: an object's translation search, +- this
-  search_step: float = 0.25  # m: the translation search's fine step (twice that first)
-  search_coarse_step: float = 0.5  # m: its coarse step (the fine one searches +- this)
-  search_points: int = 150  # points at most a motion is searched on (half judge it)
-  search_slack: float = 0.5  # m: a refined motion may reach this beyond the search
   # A point's cost is its 3-D distance to pc2 truncated at `spacings` of the object's point
   # spacings, within truncate .. max_truncate, in units of that truncation (0 .. 1).
   truncate: float = 0.3  # m: the least truncation of a point's cost (the search's)
@@ -164,44 +261,27 @@ class Objects:
   significance: float = 3.0  # standard errors of the per-point gain: the least gain too
   max_yaw_deg_per_s: float = 100.0  # deg/s: an object turning faster is refused
   low_ground: float = 0.05  # m: "ground" this high in a moving object's cells moves too
-  rounds: int = 15  # iterations of an object's bird's-eye ICP
-  icp_scales: tuple = (0.3, 0.15, 0.08, 0.05)  # m: its robust scales, 4 rounds each
-  icp_gate: float = 3.0  # scales (plus icp_gate_margin): its rows farther are left out
-  icp_gate_margin: float = 0.2  # m
   azimuth_bins: int = 1200  # columns of the visibility image (0.3 deg)
   elevation_bins: int = 360  # rows of the visibility image (0.5 deg)
   hidden: float = 0.5  # m behind pc2's return in its direction: hidden
   hidden_fit: float = 0.45  # mean cost a motion must reach where pc2 hides still's place
   min_seen: float = 0.3  # share visible in pc2 below which a motion is refused
-  # A walking person moves 5-17 cm a frame, under `unexplained`: an upright person-sized group
-  # gets the shift of the centroid of pc2's points around it, kept when it beats standing still.
-  person_size: float = 1.2  # m: a person's group is at most this wide seen from above
-  person_top: tuple = (1.0, 2.3)  # m above the ground: where a person's highest point lies
-  person_upright: float = 0.9  # m: a person's points span at least this height
-  person_radius: float = 0.8  # m: pc2's points this near the moved centre (from above) are his
-  person_rounds: int = 3  # centroid shifts, each from the last
-  person_least_matches: int = 5  # pc2's points there at least (fewer: no shift) ...
-  person_matched_share: float = 1 / 3  # ... and at least this share of the group's count
-  person_min_shift: float = 0.05  # m: a smaller shift is standing still
-  # A long object sliding along its own flat side (a car passing beside the sensor) is fixed along
-  # its length by its ends: the cells it occupies along its axis vote for its shift
-  # (jaxflow.lidar.along), which makes it a candidate and starts its fit, kept where the costs do
-  # not clearly refute it.
-  along_min_length: float = 2.5  # m: a group at least this long (seen from above) gets the vote
-  along_bin: float = 0.025  # m: the vote's cells along the axis (and its shifts' step)
-  along_band: float = 0.3  # m: ... and their height
-  # m: cells between two returns of a band this near are occupied too, so that the ends decide
-  # the vote, not the returns' spacing (a ring's on a car's side: centimetres near, more far)
-  along_gap: float = 0.3
-  along_cross: float = 0.5  # m: pc2's points this far beyond the group's band across the axis vote
-  along_support: float = 0.5  # share of the group's cells the vote's shift must match
-  # Mean squared along-axis part of the normals of a long object's lines (from above) below which
-  # it shows a flat side only (a car beside the sensor: 0.01-0.03; seen from its end: 0.5-0.9):
-  # only then it gets the vote, and its fit keeps the vote's shift; else its end face fixes it.
-  along_faces: float = 0.1
+  part: Part = Part()
+  search: Search = Search()
+  icp: Icp = Icp()
+  person: Person = Person()
+  along: Along = Along()
 
   def __post_init__(self):
-    _check(self)
+    _need(self, "lidar objects.", _NUMBER, "cell", "object_top", "novelty", "max_high",
+          "max_size", "unexplained", "min_unexplained", "truncate", "spacings", "max_truncate",
+          "margin", "relative_margin", "significance", "max_yaw_deg_per_s", "low_ground",
+          "hidden", "hidden_fit", "min_seen")
+    _need(self, "lidar objects.", _COUNT, "min_points", "many_unexplained", "azimuth_bins",
+          "elevation_bins")
+    for name, cls in (("part", Part), ("search", Search), ("icp", Icp), ("person", Person),
+                      ("along", Along)):
+      _need(self, "lidar objects.", _block(cls), name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,9 +299,11 @@ class Sweep:
   objects: Objects = Objects()
 
   def __post_init__(self):
-    _check(self)
-    if not self.frame_rate_hz > 0:
-      raise ValueError(f"lidar sweep.frame_rate_hz must be > 0, got {self.frame_rate_hz!r}")
+    _need(self, "lidar ", _NUMBER, "max_range", "min_azimuth", "static_threshold")
+    if not (_finite(self.frame_rate_hz) and self.frame_rate_hz > 0):
+      raise ValueError(f"lidar frame_rate_hz must be > 0, got {self.frame_rate_hz!r}")
+    for name, cls in (("ground", Ground), ("ego", Ego), ("sensor", Sensor), ("objects", Objects)):
+      _need(self, "lidar ", _block(cls), name)
 
 
 DEFAULTS = Sweep()  # the settings of a call given none
