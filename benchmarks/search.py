@@ -1,4 +1,4 @@
-"""Cost of one exact nearest-point search (jaxflow.refine.objectives.knn, k = 1) on each path.
+"""Cost of one exact nearest-point search (jaxflow.geometry.neighbours.knn, k = 1) on each path.
 
     python -m benchmarks.search --sizes 8192,100000 [--repeats 5] [--json FILE]
 
@@ -21,7 +21,7 @@ import numpy as np
 from scipy import spatial
 
 from benchmarks.model_speed import device_line
-from jaxflow.refine import objectives
+from jaxflow.geometry import neighbours
 from tests.test_search import sweep_like
 
 
@@ -55,11 +55,11 @@ def main():
     row["scipy_query_ms"] = times_ms(lambda: tree.query(np.asarray(q[0], np.float64), k=[1],
                                                         workers=-1), args.repeats)
     for path in args.paths.split(","):
-      fn = jax.jit(lambda a, b, path=path: objectives.knn(a, b, 1, path))
+      fn = jax.jit(lambda a, b, path=path: neighbours.knn(a, b, 1, path))
       jax.block_until_ready(fn(q, p))  # compile (and fill the cache)
       if path == "host":
         row["host_cached_ms"] = times_ms(lambda: fn(q, p), args.repeats)
-        row["host_cold_ms"] = times_ms(lambda: fn(q, p), args.repeats, objectives.clear_tree_cache)
+        row["host_cold_ms"] = times_ms(lambda: fn(q, p), args.repeats, neighbours.clear_tree_cache)
       else:
         row["device_ms"] = times_ms(lambda: fn(q, p), args.device_repeats or args.repeats)
       print(json.dumps(row), flush=True)

@@ -40,7 +40,7 @@ import numpy as np
 from jaxflow.data.pointfiles import read_points
 from jaxflow.data.sampling import sample_indices
 from jaxflow.errors import ConfigError, DataError
-from jaxflow.geometry import frames, ops
+from jaxflow.geometry import frames, neighbours
 from jaxflow.lidar import sweep
 from jaxflow.methods import lidar as lidar_method
 from jaxflow.methods import registry
@@ -271,7 +271,7 @@ def spread_flow(points_Nx3, sampled_Sx3, flow_Sx3, chunk: int = 4096) -> np.ndar
 
 @functools.partial(jax.jit, static_argnums=3)
 def _spread(points_Nx3, sampled_Sx3, flow_Sx3, chunk):
-  nearest_N = ops.knn(points_Nx3[None], sampled_Sx3[None], 1, chunk)[0, :, 0]
+  nearest_N = neighbours.matmul_knn(points_Nx3[None], sampled_Sx3[None], 1, chunk)[0, :, 0]
   return flow_Sx3[nearest_N]
 
 

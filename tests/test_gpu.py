@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow.refine import objectives, optimiser
+from jaxflow.geometry import neighbours
+from jaxflow.refine import optimiser
 from tests.test_search import reference, sweep_like
 
 REPO = Path(__file__).absolute().parent.parent
@@ -24,13 +25,13 @@ pytestmark = [pytest.mark.gpu,
 def test_auto_search_stays_on_the_gpu_and_finds_the_hosts_neighbours():
   pc1, pc2 = sweep_like(8192, seed=11)
   warped = pc1 + np.float32([0.7, 0.0, 0.0])
-  fn = jax.jit(lambda a, b: objectives.knn(a, b, 1))
+  fn = jax.jit(lambda a, b: neighbours.knn(a, b, 1))
   assert "callback" not in fn.lower(warped[None], pc2[None]).as_text()
   got = np.asarray(fn(warped[None], pc2[None]))[0, :, 0]
   want, sq = reference(warped, pc2, 1)
   clear = (sq[:, 1] - sq[:, 0]) > 1e-5 * sq[:, 1] + 1e-9
   np.testing.assert_array_equal(got[clear], want[clear, 0])
-  host = np.asarray(jax.jit(lambda a, b: objectives.knn(a, b, 1, "host"))(warped[None], pc2[None]))
+  host = np.asarray(jax.jit(lambda a, b: neighbours.knn(a, b, 1, "host"))(warped[None], pc2[None]))
   np.testing.assert_array_equal(got[clear], host[0, clear, 0])
 
 

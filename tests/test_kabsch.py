@@ -60,9 +60,8 @@ def test_fit_recovers_each_clusters_motion_with_the_same_kabsch():
                              rigid.kabsch_rotation(cov), atol=1e-5)
 
 
-def test_motion_inverse_composition_frame_and_rotation_vector():
-  """The motion algebra against applying the matrices by hand, and scipy's rotation vector
-  against Rodrigues' closed form."""
+def test_motion_inverse_composition_frame_and_yaw():
+  """The motion algebra against applying the matrices by hand; the yaw of a turn about z."""
   rng = np.random.default_rng(3)
   x = rng.uniform(-30, 30, (50, 3))
   a = rigid.Motion.of(rotation([0, 0, 1], 0.3), [1.0, -2.0, 0.5])
@@ -73,6 +72,31 @@ def test_motion_inverse_composition_frame_and_rotation_vector():
   p = np.eye(3)[[2, 0, 1]]  # a cyclic axis permutation (a rotation)
   np.testing.assert_allclose(a.in_frame(p).apply(x @ p.T), a.apply(x) @ p.T, atol=1e-12)
   assert a.angle_deg == pytest.approx(np.degrees(0.3))
+  assert a.yaw_deg == pytest.approx(np.degrees(0.3))
+  assert rigid.Motion.of(rotation([0, 0, 1], -2.5), np.zeros(3)).yaw_deg == pytest.approx(
+      np.degrees(-2.5))
+
+
+def test_rotation_vectors_give_the_closed_form_rotations():
+  """rigid.rotations_from_vectors, NumPy (float64) and jax (float32), against known rotations
+  (a quarter turn about z takes x to y), the axis-angle closed form and scipy's rotation vector,
+  at large and tiny angles (the series branch)."""
+  from scipy.spatial.transform import Rotation
+  quarter = rigid.rotations_from_vectors(np.array([[0.0, 0.0, np.pi / 2]]))[0]
+  np.testing.assert_allclose(quarter @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-15)
+  np.testing.assert_allclose(quarter @ [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], atol=1e-15)
   axis = np.array([1.0, 2.0, 2.0]) / 3.0
-  np.testing.assert_allclose(rigid.rotation_from_vector(0.7 * axis), rotation(axis, 0.7),
-                             atol=1e-12)
+  np.testing.assert_allclose(rigid.rotations_from_vectors((0.7 * axis)[None])[0],
+                             rotation(axis, 0.7), atol=1e-12)
+  rng = np.random.default_rng(5)
+  vectors = rng.normal(0, 1, (200, 3)) * rng.choice([1e-7, 1e-3, 1.0, 3.0], (200, 1))
+  want = Rotation.from_rotvec(vectors).as_matrix()
+  got = rigid.rotations_from_vectors(vectors)
+  assert isinstance(got, np.ndarray) and got.dtype == np.float64
+  np.testing.assert_allclose(got, want, atol=1e-14)
+  np.testing.assert_allclose(got @ got.transpose(0, 2, 1), np.broadcast_to(np.eye(3), got.shape),
+                             atol=1e-14)
+  np.testing.assert_allclose(np.linalg.det(got), 1.0, atol=1e-14)
+  in_jax = rigid.rotations_from_vectors(jnp.asarray(vectors, jnp.float32))
+  assert not isinstance(in_jax, np.ndarray) and in_jax.dtype == jnp.float32
+  np.testing.assert_allclose(np.asarray(in_jax), want, atol=2e-6)

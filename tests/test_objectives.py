@@ -1,5 +1,5 @@
-"""jaxflow.refine.objectives: the distance grid and its trilinear read against NumPy loops, the fast
-objective against the exact one, the grid's bound, the k-d tree search against a loop."""
+"""jaxflow.refine.distance_grid: the distance grid and its trilinear read against NumPy loops, the
+fast objective against the exact one, the grid's bound."""
 
 import itertools
 
@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflow.refine import distance_grid, objectives
+from jaxflow.refine import distance_grid
 
 
 def test_distance_grid_matches_a_brute_force_reference():
@@ -118,18 +118,3 @@ def test_grid_is_bounded_for_large_extents():
   origin, cell, dims, values = distance_grid.distance_grid_np(pts, 0.1, 4096, margin=2.0)
   assert np.prod(dims) <= 4096 and cell > 10 and np.isfinite(values).all()
   assert np.all(origin + (dims - 1) * cell >= pts.max(0) + 2.0 - 1e-6)  # the box is covered
-
-
-def test_host_knn_matches_a_loop():
-  rng = np.random.default_rng(7)
-  query = rng.normal(size=(2, 50, 3)).astype(np.float32) * 3
-  points = rng.normal(size=(2, 40, 3)).astype(np.float32) * 3
-  got = np.asarray(objectives.host_knn(jnp.asarray(query), jnp.asarray(points), 4))
-  for b in range(2):
-    for n in range(50):
-      d = [np.sum((query[b, n] - p) ** 2) for p in points[b]]
-      np.testing.assert_array_equal(got[b, n], np.argsort(d)[:4])
-  # Fewer points than asked: all of them, nearest first; and the same inside jit and vmap.
-  assert objectives.host_knn(jnp.asarray(query), jnp.asarray(points[:, :3]), 8).shape == (2, 50, 3)
-  vmapped = jax.jit(jax.vmap(lambda q, p: objectives.nearest(q[None], p[None])[0]))(query, points)
-  np.testing.assert_array_equal(np.asarray(vmapped)[..., 0], got[..., 0])

@@ -7,7 +7,7 @@ import pytest
 
 import numpy_reference as ref
 from jaxflow.evaluation import metrics
-from jaxflow.geometry import ops
+from jaxflow.geometry import neighbours, ops
 from jaxflow.network import edges, layers
 from jaxflow.network.correlation import (PointVoxelCorrelation, planar, truncated_correlation,
                                          voxel_means)
@@ -47,7 +47,7 @@ def numpy_params(variables):
 @pytest.mark.parametrize("seed", SEEDS)
 def test_knn_matches_loop(seed):
   pts = cloud(seed)
-  got = np.asarray(ops.knn(jnp.asarray(pts)[None], jnp.asarray(pts)[None], 8))[0]
+  got = np.asarray(neighbours.matmul_knn(jnp.asarray(pts)[None], jnp.asarray(pts)[None], 8))[0]
   want = ref.knn(pts, 8)
   assert all(set(g) == set(w) for g, w in zip(got, want))
   assert np.all(got[:, 0] == np.arange(len(pts)))  # nearest is the point itself
@@ -56,7 +56,8 @@ def test_knn_matches_loop(seed):
 @pytest.mark.parametrize("chunk", [0, 7, 16])
 def test_knn_chunked_equals_whole(chunk):
   pts = jnp.asarray(cloud(3, n=50))[None]
-  np.testing.assert_array_equal(ops.knn(pts, pts, 6, chunk), ops.knn(pts, pts, 6))
+  np.testing.assert_array_equal(neighbours.matmul_knn(pts, pts, 6, chunk),
+                                neighbours.matmul_knn(pts, pts, 6))
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -163,7 +164,7 @@ def test_gcl_neighbour_max_gradient_equals_autodiff_of_the_max(seed, similarity)
   # makes ties at 0 in the product form, where both give a zero gradient.
   rng = np.random.default_rng(seed)
   xyz = jnp.asarray(cloud(seed, n=32))[None]
-  nbr = ops.knn(xyz, xyz, 6)
+  nbr = neighbours.matmul_knn(xyz, xyz, 6)
   unit_v = layers.safe_normalize(ops.gather(xyz, nbr) - xyz[:, :, None, :])
   support = jnp.asarray(rng.normal(size=(1, 32, 12)), jnp.float32)
   unit_e = layers.safe_normalize(jnp.asarray(rng.normal(size=(12, 3)), jnp.float32)).T
@@ -189,7 +190,7 @@ def test_gcl_neighbour_max_by_blocks_of_points_equals_the_whole_cloud(monkeypatc
   # winners and gradients the same.
   rng = np.random.default_rng(4)
   xyz = jnp.asarray(np.stack([cloud(4, n=32), cloud(5, n=32)]))
-  nbr = ops.knn(xyz, xyz, 6)
+  nbr = neighbours.matmul_knn(xyz, xyz, 6)
   unit_v = layers.safe_normalize(ops.gather(xyz, nbr) - xyz[:, :, None, :])
   support = jnp.asarray(rng.normal(size=(2, 32, 12)), jnp.float32)
   unit_e = layers.safe_normalize(jnp.asarray(rng.normal(size=(12, 3)), jnp.float32)).T

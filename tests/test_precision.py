@@ -74,12 +74,12 @@ def test_every_dot_of_the_training_gradient_carries_the_precision(precision, wan
 
 def test_precision_reaches_the_knn_and_the_correlation():
   """The kNN distance matmul and the all-pairs correlation alone (no network dots) follow it."""
-  from jaxflow.geometry import ops
+  from jaxflow.geometry import neighbours
   from jaxflow.network.correlation import truncated_correlation
   pc1, pc2 = pair()
   for precision, want in (("highest", "HIGHEST"), ("tensorfloat32", "HIGH"),
                           ("bfloat16", "DEFAULT")):
-    knn = jax.jit(lambda a: ops.knn(a, a, 8, precision=precision)).lower(pc1).as_text()
+    knn = jax.jit(lambda a: neighbours.matmul_knn(a, a, 8, precision=precision)).lower(pc1).as_text()
     corr = jax.jit(lambda a, b: truncated_correlation(a, b, b, 8, precision=precision))
     for text in (knn, corr.lower(pc1, pc2).as_text()):
       assert dot_precisions(text) == [f"{want},{want}"]

@@ -10,7 +10,7 @@ import pytest
 
 from jaxflow import inference
 from jaxflow.configs import pvraft
-from jaxflow.geometry import ops
+from jaxflow.geometry import neighbours
 from jaxflow.import_pvraft import convert_state_dict, import_into
 from jaxflow.network.model import build_model
 
@@ -65,7 +65,7 @@ def test_exact_knn_differs_from_the_official_graphs_on_a_few_rows_only(pvraft_re
   a handful of the 2048 rows (README: 1-3, where float32 rounding exceeds the 32nd/33rd gap)."""
   for cloud, nbr in (("pc1", "nbr1"), ("pc2", "nbr2")):
     points = jnp.asarray(pvraft_reference[cloud])
-    ours = np.sort(np.asarray(ops.knn(points, points, 32))[0], axis=-1)
+    ours = np.sort(np.asarray(neighbours.matmul_knn(points, points, 32))[0], axis=-1)
     theirs = np.sort(pvraft_reference[nbr][0], axis=-1)
     differing = int(np.sum(np.any(ours != theirs, axis=-1)))
     assert differing <= 5, (cloud, differing)

@@ -61,7 +61,8 @@ def box_faces(rng, n=3000):
 def test_point_to_plane_fit_recovers_a_known_motion_despite_outliers():
   rng = np.random.default_rng(2)
   target_pts = box_faces(rng)
-  truth = rigid.Motion(rigid.rotation_from_vector([0.02, -0.03, 0.08]), np.array([0.3, -0.2, 0.1]))
+  truth = rigid.Motion(rigid.rotations_from_vectors(np.array([[0.02, -0.03, 0.08]]))[0],
+                       np.array([0.3, -0.2, 0.1]))
   src = truth.inverse().apply(box_faces(rng))  # other samples of the same surfaces
   src = np.r_[src, rng.uniform(0, 20, (150, 3))]  # clutter that matches nothing well
   target = registration.PlaneTarget(target_pts)

@@ -1,6 +1,7 @@
-"""jaxflow.refine.objectives' nearest-point searches: the device's brute force and the host's k-d tree give
-the same neighbours on clouds like real sweeps, pc2's tree is built once per optimisation, and the
-device's distance grid holds the exact distances (the host's is within a cell of them)."""
+"""jaxflow.geometry.neighbours' nearest-point searches: the host's k-d tree against a loop, the
+device's brute force and the host's k-d tree give the same neighbours on clouds like real sweeps,
+pc2's tree is built once per optimisation, and the device's distance grid holds the exact
+distances (the host's is within a cell of them)."""
 
 import dataclasses
 import itertools
@@ -10,7 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflow.refine import distance_grid, objectives, optimiser
+from jaxflow.geometry import neighbours
+from jaxflow.refine import distance_grid, optimiser
 
 
 def sweep_like(n: int, seed: int):
@@ -50,7 +52,7 @@ def test_device_and_host_searches_find_the_same_neighbours_on_a_sweep(k):
   # A row whose k-th and (k+1)-th distances lie within float32 rounding is a tie (either is right).
   clear = (sq[:, k] - sq[:, k - 1]) > 1e-5 * sq[:, k] + 1e-9
   assert clear.mean() > 0.99, clear.mean()
-  got = {s: np.asarray(jax.jit(lambda a, b: objectives.knn(a, b, k, s))(warped[None], pc2[None]))[0]
+  got = {s: np.asarray(jax.jit(lambda a, b: neighbours.knn(a, b, k, s))(warped[None], pc2[None]))[0]
          for s in ("host", "device")}
   for search, idx in got.items():
     np.testing.assert_array_equal(idx[clear, :k], want[clear, :k], err_msg=search)
@@ -62,18 +64,18 @@ def test_device_search_in_batches_chunks_and_small_clouds():
   query = rng.normal(size=(2, 70, 3)).astype(np.float32) * 5
   points = rng.normal(size=(2, 40, 3)).astype(np.float32) * 5
   for block in (40 * 7, 10**6):  # 7 rows a block (70 = 10 blocks), all rows at once
-    got = np.asarray(objectives.device_knn(jnp.asarray(query), jnp.asarray(points), 4, block))
+    got = np.asarray(neighbours.device_knn(jnp.asarray(query), jnp.asarray(points), 4, block))
     for b, n in itertools.product(range(2), range(70)):
       d = np.sum((query[b, n] - points[b]) ** 2, axis=1)
       np.testing.assert_array_equal(got[b, n], np.argsort(d)[:4])
-  few = objectives.device_knn(jnp.asarray(query), jnp.asarray(points[:, :3]), 8)
+  few = neighbours.device_knn(jnp.asarray(query), jnp.asarray(points[:, :3]), 8)
   assert few.shape == (2, 70, 3)
   # Inside vmap (as the optimiser calls it) and for pc1's own neighbours (the point excluded).
-  vmapped = jax.jit(jax.vmap(lambda q, p: objectives.nearest(q[None], p[None], "device")[0]))
+  vmapped = jax.jit(jax.vmap(lambda q, p: neighbours.nearest(q[None], p[None], "device")[0]))
   np.testing.assert_array_equal(np.asarray(vmapped(query, points))[..., 0],
-                                np.asarray(objectives.host_knn(query, points, 1))[..., 0])
-  nbr = np.asarray(objectives.neighbours(jnp.asarray(points), 3, "device"))
-  np.testing.assert_array_equal(nbr, np.asarray(objectives.host_knn(points, points, 4))[..., 1:])
+                                np.asarray(neighbours.host_knn(query, points, 1))[..., 0])
+  nbr = np.asarray(neighbours.nearest_others(jnp.asarray(points), 3, "device"))
+  np.testing.assert_array_equal(nbr, np.asarray(neighbours.host_knn(points, points, 4))[..., 1:])
 
 
 def test_pc2_tree_is_built_once_per_optimisation():
@@ -81,16 +83,16 @@ def test_pc2_tree_is_built_once_per_optimisation():
   its k-d tree is built once (then found by content), while the warped cloud's is new each time."""
   pc1, pc2 = sweep_like(500, seed=5)
   chosen = optimiser.Settings(objective="exact", steps=12, refresh=3, search="host")
-  objectives.clear_tree_cache()
+  neighbours.clear_tree_cache()
   jax.block_until_ready(optimiser.optimise(jnp.zeros((1, 500, 3)), pc1[None], pc2[None], chosen))
-  info = objectives.tree_cache_info()
+  info = neighbours.tree_cache_info()
   searches = 1 + chosen.steps // chosen.refresh  # the starting loss, then one search a block
   # Each search: warped -> pc2 (pc2's tree) and pc2 -> warped (the warped cloud's tree).
   assert info["misses"] + info["hits"] == 2 * searches
   assert info["hits"] >= searches - 1  # pc2's tree, built once; a warped cloud rarely repeats
   assert info["misses"] <= searches + 1
   with pytest.raises(ValueError, match="search must be one of auto, host, device"):
-    objectives.knn(jnp.asarray(pc1[None]), jnp.asarray(pc2[None]), 1, "gpu")
+    neighbours.knn(jnp.asarray(pc1[None]), jnp.asarray(pc2[None]), 1, "gpu")
 
 
 def test_device_distance_grid_is_exact_and_the_host_one_within_a_cell():
@@ -125,3 +127,18 @@ def test_the_optimiser_gives_the_same_flow_on_either_search_path():
            for s in ("host", "device")]
   assert np.abs(flows[0]).max() > 1e-3  # it moved
   np.testing.assert_allclose(flows[1], flows[0], atol=1e-4)
+
+
+def test_host_knn_matches_a_loop():
+  rng = np.random.default_rng(7)
+  query = rng.normal(size=(2, 50, 3)).astype(np.float32) * 3
+  points = rng.normal(size=(2, 40, 3)).astype(np.float32) * 3
+  got = np.asarray(neighbours.host_knn(jnp.asarray(query), jnp.asarray(points), 4))
+  for b in range(2):
+    for n in range(50):
+      d = [np.sum((query[b, n] - p) ** 2) for p in points[b]]
+      np.testing.assert_array_equal(got[b, n], np.argsort(d)[:4])
+  # Fewer points than asked: all of them, nearest first; and the same inside jit and vmap.
+  assert neighbours.host_knn(jnp.asarray(query), jnp.asarray(points[:, :3]), 8).shape == (2, 50, 3)
+  vmapped = jax.jit(jax.vmap(lambda q, p: neighbours.nearest(q[None], p[None])[0]))(query, points)
+  np.testing.assert_array_equal(np.asarray(vmapped)[..., 0], got[..., 0])

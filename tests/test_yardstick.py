@@ -10,7 +10,7 @@ from pathlib import Path
 import jax
 
 from benchmarks import yardstick
-from jaxflow.geometry import ops
+from jaxflow.geometry import neighbours
 
 REPO = Path(__file__).absolute().parent.parent
 
@@ -29,7 +29,7 @@ def test_a_blockwise_knn_orders_no_row_as_long_as_the_cloud():
   points = jax.random.uniform(jax.random.PRNGKey(0), (1, 4096, 3))
   longest = {}
   for form in ("sort", "blockwise"):
-    knn = jax.jit(functools.partial(ops.knn, k=32, selection=form))
+    knn = jax.jit(functools.partial(neighbours.matmul_knn, k=32, selection=form))
     longest[form] = yardstick.selections(knn.lower(points, points).compile().as_text())[1]
   assert longest == {"sort": 4096, "blockwise": 512}  # blocks of 256, then 16 x 32 survivors
 

@@ -360,7 +360,9 @@ def _nx3(points_3xN) -> np.ndarray:
 # Scene building.
 
 def rotation(axis, angle: float) -> np.ndarray:
-  """Rotation by `angle` radians about `axis` (Rodrigues, in plain floats: scenes build many)."""
+  """Rotation by `angle` radians about `axis` (Rodrigues, in plain floats: scenes build many).
+  Not jaxflow.geometry.rigid.rotations_from_vectors: every generated scene depends on this one's
+  rounding, bit for bit."""
   x, y, z = (float(v) for v in axis)
   n = math.sqrt(x * x + y * y + z * z)
   x, y, z = x / n, y / n, z / n

@@ -1,5 +1,6 @@
-"""Geometry every other part shares: nearest neighbours and gathers in jax (`ops`), the host's
-k-d tree and neighbourhood normals (`neighbours`), rigid motions and the one Kabsch fit (`rigid`),
+"""Geometry every other part shares: every nearest-neighbour search, on the host and in compiled
+programs, and neighbourhood normals (`neighbours`), distances, row chunks and gathers in jax
+(`ops`), rigid motions, the one Kabsch fit and the one rotation of a rotation vector (`rigid`),
 the one robust registration core (`registration`), the up axis and the model frame (`frames`),
 what a sensor at the origin saw (`visibility`), rigid groups and the rule that judges them
 (`groups`). It imports only jaxflow.errors; everything else may import it.

@@ -1,12 +1,11 @@
-"""Neighbour search and gathers on batched point clouds.
+"""Distances, chunked row maps and gathers on batched point clouds (the searches built on them:
+jaxflow.geometry.neighbours).
 
 Every function works on a batch: points `B x N x 3`, neighbour indices `B x N x K` (int32).
 """
 
 import jax
 import jax.numpy as jnp
-
-from jaxflow.geometry import select
 
 
 def squared_distances(a_BxNx3: jax.Array, b_BxMx3: jax.Array,
@@ -71,28 +70,6 @@ def map_row_chunks(fn, xs, chunk: int):
     return y.reshape(y.shape[0], num * chunk, *y.shape[3:])[:, :n]
 
   return jax.tree_util.tree_map(merge, outs)
-
-
-def knn(query_BxNx3: jax.Array, points_BxMx3: jax.Array, k: int, chunk: int = 0,
-        precision: str = "highest", selection: str = "auto") -> jax.Array:
-  """Indices `B x N x k'` of the k' = min(k, M) points nearest to each query (a query in
-  `points` finds itself): a cloud smaller than k uses all its points as neighbours.
-
-  With `chunk` > 0 the distance matrix is built `chunk` query rows at a time (memory ~ chunk x M);
-  `precision` is that of its matmul (squared_distances); `selection` how the k are selected
-  (select.FORMS: the same neighbours in the same order every way).
-  """
-  k = min(k, points_BxMx3.shape[1])
-  # Centred coordinates keep the |a|^2 + |b|^2 - 2ab form exact enough far from the origin.
-  centre_Bx1x3 = jnp.mean(points_BxMx3, axis=1, keepdims=True)
-  points_BxMx3 = jax.lax.stop_gradient(points_BxMx3 - centre_Bx1x3)
-
-  def nearest(q_BxCx3):
-    d_BxCxM = squared_distances(jax.lax.stop_gradient(q_BxCx3 - centre_Bx1x3), points_BxMx3,
-                                precision)
-    return select.top_k(-d_BxCxM, k, selection)[1]
-
-  return map_row_chunks(nearest, (query_BxNx3,), chunk)
 
 
 def gather(values_BxMxC: jax.Array, idx_BxNxK: jax.Array) -> jax.Array:

@@ -105,7 +105,7 @@ def robust_fit(points_Kx3, start: rigid.Motion, rows_of, scales, dof: str = "6",
       _add_point_to_point(h, g, q, rows.offset, point_weight * w)
     step = -np.linalg.solve(h, g)
     if dof == "6":
-      d_rot, d_t = rigid.rotation_from_vector(step[:3]), step[3:]
+      d_rot, d_t = rigid.rotations_from_vectors(step[None, :3])[0], step[3:]
     else:
       c, s = np.cos(step[0]), np.sin(step[0])
       d_rot, d_t = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]), np.r_[step[1:], 0.0]

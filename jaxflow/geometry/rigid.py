@@ -1,4 +1,5 @@
-"""Rigid motions of point sets: the least-squares fit (Kabsch) and a robust fit of the static part.
+"""Rigid motions of point sets: the least-squares fit (Kabsch), a robust fit of the static part and
+the rotation of a rotation vector (NumPy or jax).
 
     motion = fit_static_motion(pc1_Nx3, flow_Nx3)   # the ego-motion hidden in a scene's flow
     rigid_flow_Mx3 = motion.flow(points_Mx3)        # the flow a static point would have
@@ -50,11 +51,32 @@ class Motion:
   def angle_deg(self) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(self.rotation) - 1) / 2, -1.0, 1.0))))
 
+  @property
+  def yaw_deg(self) -> float:
+    """The heading change about z in degrees (signed; a z-up frame's turn of the x axis)."""
+    return float(np.degrees(np.arctan2(self.rotation[1, 0], self.rotation[0, 0])))
 
-def rotation_from_vector(omega_3) -> np.ndarray:
-  """The rotation matrix of a rotation vector (axis times angle in radians), NumPy float64."""
-  from scipy.spatial.transform import Rotation  # pylint: disable=import-outside-toplevel
-  return Rotation.from_rotvec(np.asarray(omega_3, np.float64)).as_matrix()
+
+def rotations_from_vectors(vectors_Nx3, precision: str = "highest"):
+  """The rotation matrices (N x 3 x 3) of rotation vectors (axis times angle in radians), by
+  Rodrigues' formula: exact and smooth at 0. NumPy in, NumPy out (float64; `precision` unused);
+  a jax array in, jax out at `precision` (the optimiser's rigid model, inside jit)."""
+  if isinstance(vectors_Nx3, np.ndarray):
+    xp, matmul = np, np.matmul
+  else:  # jax only here, as kabsch_rotation
+    import jax  # pylint: disable=import-outside-toplevel
+    xp = jax.numpy
+    matmul = functools.partial(jax.numpy.matmul, precision=jax.lax.Precision(precision))
+  theta2 = xp.sum(vectors_Nx3**2, axis=-1)[:, None, None]
+  theta = xp.sqrt(xp.maximum(theta2, 1e-12))
+  small = theta2 < 1e-8
+  a = xp.where(small, 1.0 - theta2 / 6.0, xp.sin(theta) / theta)
+  b = xp.where(small, 0.5 - theta2 / 24.0, (1.0 - xp.cos(theta)) / xp.maximum(theta2, 1e-12))
+  x, y, z = vectors_Nx3[:, 0], vectors_Nx3[:, 1], vectors_Nx3[:, 2]
+  zero = xp.zeros_like(x)
+  k = xp.stack([xp.stack([zero, -z, y], -1), xp.stack([z, zero, -x], -1),
+                xp.stack([-y, x, zero], -1)], -2)
+  return xp.eye(3) + a * k + b * matmul(k, k)
 
 
 def kabsch_rotation(cov_Sx3x3, precision: str = "highest"):

@@ -129,7 +129,7 @@ class _Scene:
 
   def plausible(self, motion: rigid.Motion, points_Kx3) -> bool:
     """No car turns or jumps farther than the limits in a frame."""
-    yaw = abs(np.degrees(np.arctan2(motion.rotation[1, 0], motion.rotation[0, 0])))
+    yaw = abs(motion.yaw_deg)
     centre = points_Kx3.mean(0)
     shift = np.linalg.norm(motion.apply(centre[None])[0] - centre)
     return yaw <= self.max_yaw_deg and shift <= self.search + self.settings.search.slack
@@ -349,7 +349,7 @@ class _Pass:
     idx, pts = idx[parts], pts[parts]
     world = best.then(self.scene.ego_motion)
     self.flow[idx] = world.flow(pts)
-    yaw = float(np.degrees(np.arctan2(best.rotation[1, 0], best.rotation[0, 0])))
+    yaw = best.yaw_deg
     self.moved.append((len(idx), best.translation, yaw, name))
     if self.surface is not None:
       low = _low_ground_under(pts, self.pc1, self.ground1, self.height, self.scene.settings)

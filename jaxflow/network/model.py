@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import ml_collections
 
-from jaxflow.geometry import ops, select
+from jaxflow.geometry import neighbours, ops, select
 from jaxflow.network.correlation import (VOXEL_CELLS, PointVoxelCorrelation, planar,
                                          truncated_correlation)
 from jaxflow.network.encoder import GraphEncoder, SetConvEncoder
@@ -98,7 +98,8 @@ class SceneFlowNet(nn.Module):
     """(nbr1 B x N x knn, nbr2 B x M x knn): each cloud's kNN graph, or `graphs` as given."""
     if graphs is not None:
       return graphs
-    return tuple(ops.knn(pc, pc, self.knn, self._chunk(pc, pc), self.precision, self.selection)
+    return tuple(neighbours.matmul_knn(pc, pc, self.knn, self._chunk(pc, pc), self.precision,
+                                       self.selection)
                  for pc in (pc1_BxNx3, pc2_BxMx3))
 
   def _context(self, pc1_BxNx3, nbr1_BxNxK):

@@ -18,7 +18,8 @@ import numpy as np
 from scipy import ndimage
 
 from jaxflow.geometry import ops
-from jaxflow.refine.objectives import DEVICE_BLOCK_ELEMENTS, check_search, resolved, squared_differences
+from jaxflow.geometry.neighbours import (DEVICE_BLOCK_ELEMENTS, check_search, resolved,
+                                         squared_differences)
 
 
 class Grid(typing.NamedTuple):

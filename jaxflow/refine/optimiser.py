@@ -13,8 +13,8 @@ pc1 + flow -> pc2 term, O(N) a step; jaxflow.refine.objectives). Every pair runs
 stopping (the loss has not fallen by `min_delta` for `patience` steps) and returns the flow of its
 lowest loss. The loop is one `lax.while_loop` over blocks of `refresh` scanned steps: no host round
 trip per step (`search` "auto": the nearest points are searched on the device on a GPU or TPU, by
-the host's k-d tree on the CPU; jaxflow.refine.objectives). Every matmul runs at `precision` (exact
-float32 by default: a GPU's TF32 would move the points of a cluster tens of metres wide by
+the host's k-d tree on the CPU; jaxflow.geometry.neighbours). Every matmul runs at `precision`
+(exact float32 by default: a GPU's TF32 would move the points of a cluster tens of metres wide by
 centimetres). Clouds are centred on pc1's mean first (the flow does not change with a translation of
 both; far from the origin float32 would lose the centimetres).
 """
@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from jaxflow.geometry import neighbours, rigid
 from jaxflow.refine import distance_grid, objectives, rigid_clusters
 from jaxflow.refine.progress import Progress
 from jaxflow.network.layers import PRECISIONS
@@ -54,7 +55,7 @@ class Settings:
   depth: int = 8  # ReLU layers of the MLP (then a linear one)
   seed: int = 0  # the MLP's initial weights
   precision: str = "highest"  # of every matmul (jaxflow.network.layers.PRECISIONS)
-  search: str = "auto"  # where nearest points are searched (jaxflow.refine.objectives.SEARCHES)
+  search: str = "auto"  # where nearest points are searched (jaxflow.geometry.neighbours.SEARCHES)
 
   def __post_init__(self):
     if self.model not in MODELS:
@@ -75,7 +76,7 @@ class Settings:
     if self.precision not in PRECISIONS:
       raise ValueError(f"optimiser precision must be one of {', '.join(PRECISIONS)}, "
                        f"got {self.precision!r}")
-    objectives.check_search(self.search, "optimiser search")
+    neighbours.check_search(self.search, "optimiser search")
 
 
 def init_mlp(key, width: int, depth: int):
@@ -118,7 +119,7 @@ def _flow(params, init_Nx3, pc1_Nx3, clusters, precision: str):
   if "rotation" in params:
     labels_N, r_Nx3x3, cen_Nx3, t_Nx3 = clusters
     r_Nx3x3 = jnp.einsum("nij,njk->nik", r_Nx3x3,
-                         rigid_clusters.rodrigues(params["rotation"], precision),
+                         rigid.rotations_from_vectors(params["rotation"], precision),
                          precision=jax.lax.Precision(precision))
     return rigid_clusters.rigid_flow(pc1_Nx3, labels_N, r_Nx3x3, cen_Nx3,
                                      t_Nx3 + params["translation"], precision)
@@ -153,7 +154,7 @@ def _search(params, pair, settings: Settings):
     return ()
   init_Nx3, pc1_Nx3, pc2_Mx3, clusters = pair
   warped = (pc1_Nx3 + _flow(params, init_Nx3, pc1_Nx3, clusters, settings.precision))[None]
-  near = functools.partial(objectives.nearest, search=settings.search)
+  near = functools.partial(neighbours.nearest, search=settings.search)
   match = (near(warped, pc2_Mx3[None]), near(pc2_Mx3[None], warped))
   if "inverse" in params:
     back = warped - apply_mlp(params["inverse"], warped[0], settings.precision)[None]
@@ -216,7 +217,7 @@ def _neighbours(pc1_Nx3, settings: Settings):
   """pc1's kNN graph of the smoothness term (a placeholder without it)."""
   if not settings.smoothness:
     return jnp.zeros((pc1_Nx3.shape[0], 1), jnp.int32)
-  return objectives.neighbours(pc1_Nx3[None], settings.neighbours, settings.search)[0]
+  return neighbours.nearest_others(pc1_Nx3[None], settings.neighbours, settings.search)[0]
 
 
 def _one_pair(pair, grids, nbr_NxK, settings: Settings):
@@ -270,7 +271,7 @@ def optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(), 
   translation) from jaxflow.refine.rigid_clusters (`clusters`, `fit`) and does not use `init`.
   `grids`: those of `distance_grids` for these clouds and settings (None: built here); `nbr_BxNxK`:
   pc1's
-  graph of the smoothness term (objectives.neighbours; None: searched here)."""
+  graph of the smoothness term (neighbours.nearest_others; None: searched here)."""
   _check(settings, clusters)
   if grids is None:
     grids = distance_grids(pc1_BxNx3, pc2_BxMx3, settings)
@@ -336,7 +337,7 @@ def _host_result(carry, pair, grids, nbr_BxNxK, start_B, settings: Settings):
 def optimise_host_loop(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clusters=(),
                        grids=None, nbr_BxNxK=None, progress: bool | None = None):
   """`optimise`'s result, the nearest points of the exact objective searched from Python between
-  compiled blocks of `refresh` steps (objectives.host_search on the CPU, the device's search
+  compiled blocks of `refresh` steps (neighbours.host_search on the CPU, the device's search
   elsewhere) instead of inside one compiled loop. `grids` (grid objective) and `nbr_BxNxK`
   (smoothness) are searched here when not given, the same way. `progress`: a bar on stderr of the
   steps, the lowest loss and the time left; None: the bar on a terminal, and elsewhere (a log file)
@@ -347,14 +348,14 @@ def optimise_host_loop(init_BxNx3, pc1_BxNx3, pc2_BxMx3, settings: Settings, clu
   if grids is None:
     grids = distance_grids(pc1_BxNx3, pc2_BxMx3, settings, now=True)
   if nbr_BxNxK is None:
-    nbr_BxNxK = (objectives.neighbours_now(pc1_BxNx3, settings.neighbours, search)
+    nbr_BxNxK = (neighbours.nearest_others_now(pc1_BxNx3, settings.neighbours, search)
                  if settings.smoothness else jnp.zeros(pc1_BxNx3.shape[:2] + (1,), jnp.int32))
   pair, carry = _host_start(init_BxNx3, pc1_BxNx3, pc2_BxMx3, clusters, settings)
 
   def match(carry):
     if settings.objective == "grid":
       return ()
-    return tuple(objectives.nearest_now(q, p, search)[:, None]  # each pair's as a batch of one
+    return tuple(neighbours.nearest_now(q, p, search)[:, None]  # each pair's as a batch of one
                  for q, p in _host_warped(carry, pair, settings))
 
   held = match(carry)

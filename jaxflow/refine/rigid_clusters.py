@@ -15,7 +15,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from jaxflow.geometry import ops, rigid
+from jaxflow.geometry import neighbours, ops, rigid
 from jaxflow.refine import objectives
 
 
@@ -26,7 +26,7 @@ class Settings:
   flow_tolerance: float = 0.3  # metres between the flows of linked points
   min_points: int = 8  # smaller clusters keep a pure translation (their mean flow)
   propagation: int = 64  # label-propagation rounds at most (each also jumps labels to labels)
-  search: str = "auto"  # where the kNN graph is searched (jaxflow.refine.objectives.SEARCHES)
+  search: str = "auto"  # where the kNN graph is searched (jaxflow.geometry.neighbours.SEARCHES)
 
   def __post_init__(self):
     for name in ("neighbours", "min_points", "propagation"):
@@ -35,7 +35,7 @@ class Settings:
     for name in ("radius", "flow_tolerance"):
       if not getattr(self, name) >= 0:
         raise ValueError(f"rigid {name} must be >= 0, got {getattr(self, name)!r}")
-    objectives.check_search(self.search, "rigid search")
+    neighbours.check_search(self.search, "rigid search")
 
 
 def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings, nbr_BxNxK=None):
@@ -43,7 +43,7 @@ def clusters(pc1_BxNx3, flow_BxNx3, settings: Settings, nbr_BxNxK=None):
   `nbr_BxNxK`: each point's `settings.neighbours` + 1 nearest, itself included (None: searched)."""
   k = min(settings.neighbours + 1, pc1_BxNx3.shape[1])
   if nbr_BxNxK is None:
-    nbr_BxNxK = objectives.knn(pc1_BxNx3, pc1_BxNx3, k, settings.search)
+    nbr_BxNxK = neighbours.knn(pc1_BxNx3, pc1_BxNx3, k, settings.search)
   near = jnp.sum((ops.gather(pc1_BxNx3, nbr_BxNxK) - pc1_BxNx3[:, :, None]) ** 2, -1)
   same = jnp.sum((ops.gather(flow_BxNx3, nbr_BxNxK) - flow_BxNx3[:, :, None]) ** 2, -1)
   linked_BxNxK = (near <= settings.radius**2) & (same <= settings.flow_tolerance**2)
@@ -89,20 +89,6 @@ def fit(pc1_BxNx3, flow_BxNx3, labels_BxN, min_points: int, precision: str = "hi
   return jax.vmap(one)(pc1_BxNx3, flow_BxNx3, labels_BxN)
 
 
-def rodrigues(w_Nx3, precision: str = "highest"):
-  """Rotation matrices of rotation vectors (axis x angle), N x 3 x 3; exact and smooth at 0."""
-  theta2 = jnp.sum(w_Nx3**2, axis=-1)[:, None, None]
-  theta = jnp.sqrt(jnp.maximum(theta2, 1e-12))
-  small = theta2 < 1e-8
-  a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
-  b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / jnp.maximum(theta2, 1e-12))
-  x, y, z = w_Nx3[:, 0], w_Nx3[:, 1], w_Nx3[:, 2]
-  zero = jnp.zeros_like(x)
-  k = jnp.stack([jnp.stack([zero, -z, y], -1), jnp.stack([z, zero, -x], -1),
-                 jnp.stack([-y, x, zero], -1)], -2)
-  return jnp.eye(3) + a * k + b * jnp.matmul(k, k, precision=jax.lax.Precision(precision))
-
-
 def rigid_flow(p_Nx3, labels_N, r_Nx3x3, cen_Nx3, t_Nx3, precision: str = "highest"):
   """Flow of each point under its cluster's motion p -> R (p - c) + c + t."""
   moved = jnp.einsum("nij,nj->ni", r_Nx3x3[labels_N], p_Nx3 - cen_Nx3[labels_N],
@@ -114,11 +100,11 @@ def choose(labels_BxN, flows, pc1_BxNx3, pc2_BxMx3, truncate: float, search: str
            matches=None):
   """Per cluster, the candidate flow (of `flows`, each B x N x 3) whose warped points lie nearest
   pc2 on average (truncated squared distance to the nearest pc2 point); ties go to the first.
-  `matches`: each flow's objectives.nearest(pc1 + flow, pc2) (None: searched)."""
+  `matches`: each flow's neighbours.nearest(pc1 + flow, pc2) (None: searched)."""
   costs = []
   for i, flow in enumerate(flows):
     warped = pc1_BxNx3 + flow
-    match = objectives.nearest(warped, pc2_BxMx3, search) if matches is None else matches[i]
+    match = neighbours.nearest(warped, pc2_BxMx3, search) if matches is None else matches[i]
     sq_BxN = objectives.matched_sq(warped, pc2_BxMx3, match)
     per = jax.vmap(lambda c, lab: jax.ops.segment_sum(c, lab, num_segments=c.shape[0]))
     costs.append(per(jnp.minimum(sq_BxN, truncate**2), labels_BxN))
