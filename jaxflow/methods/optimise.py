@@ -14,9 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxflow.errors import ConfigError
-from jaxflow.geometry import groups, registration
+from jaxflow.geometry import groups, neighbours, registration
 from jaxflow.geometry.visibility import View
-from jaxflow.refine import bodies, objectives, optimiser, rigid_clusters
+from jaxflow.lidar import ego
+from jaxflow.refine import bodies, optimiser, rigid_clusters
 from jaxflow.methods.interface import Method
 
 
@@ -62,6 +63,27 @@ class Guard:
 
 
 @dataclasses.dataclass(frozen=True)
+class World:
+  """The scene's one rigid motion registered on the whole pair by GICP (jaxflow.lidar.ego.estimate),
+  given to each point whose `neighbours` nearest points of pc1 it places as near pc2's local planes
+  (distances truncated at `truncate` m) as the flow does, within `tie` m: the descent's
+  point-to-point Chamfer lets a static world seen as walls slide along them, a registration of
+  surfaces does not, and the tie goes to the motion that does not depend on the start."""
+  neighbours: int = 16
+  tie: float = 0.01
+  truncate: float = 0.3
+
+  def __post_init__(self):
+    if not isinstance(self.neighbours, int) or self.neighbours < 1:
+      raise ValueError("optimise world.neighbours must be an integer >= 1, got "
+                       f"{self.neighbours!r}")
+    if not self.tie >= 0:
+      raise ValueError(f"optimise world.tie must be >= 0, got {self.tie!r}")
+    if not self.truncate > 0:
+      raise ValueError(f"optimise world.truncate must be > 0, got {self.truncate!r}")
+
+
+@dataclasses.dataclass(frozen=True)
 class Optimise:
   """The `optimise` method: from the network's flow after `start_iters` iterations, `descent` (the
   flow optimised as free vectors on the distance grid); then, for `rigid_steps` > 0, clusters of
@@ -72,7 +94,8 @@ class Optimise:
   found in that flow and fitted to pc2 (jaxflow.refine.bodies, on the host: one
   device-host round trip a batch). After each of the last three, `guard` (None: none): each group
   of points (the rigid clusters of the flow a stage was given, or the bodies' motions) keeps the
-  flow it was given where pc2 does not support the stage's own (Guard)."""
+  flow it was given where pc2 does not support the stage's own (Guard). Last, `world` (None: none):
+  the scene's GICP motion where it fits pc2 as well as the flow (World), also guarded."""
   # The network's iterations for the starting flow (None: the caller's, e.g. --iters) and its
   # correlation candidates (None: the model's, config.model.infer_truncate_k): 8 and 64 instead of
   # 32 and 512 take the network's start from ~10 to ~3 s a pair at 8192 points, and the method's
@@ -92,6 +115,7 @@ class Optimise:
   # Each stage after the descent adopts its flow group by group only where pc2 supports it (None:
   # unguarded): a stage turned a few micrometres of change in its start into metres of error.
   guard: Guard | None = Guard()
+  world: World | None = None  # the last stage (None: none)
 
   def __post_init__(self):
     for name in ("start_iters", "start_candidates"):
@@ -132,7 +156,7 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
   search = chosen.descent.search
   grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.descent, now=True)
   k = max(chosen.descent.neighbours, chosen.polish.neighbours, chosen.clusters.neighbours)
-  graph = objectives.knn_now(pc1_BxNx3, pc1_BxNx3, k + 1, search)  # each point first
+  graph = neighbours.knn_now(pc1_BxNx3, pc1_BxNx3, k + 1, search)  # each point first
   nbr = lambda settings: graph[:, :, 1:settings.neighbours + 1]
   clock("grid and kNN graph", grids, graph)
   flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.descent, grids=grids,
@@ -143,7 +167,7 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
                                   graph[:, :, :chosen.clusters.neighbours + 1], chosen)
     clock("rigid clusters", fitted)
     if chosen.choose:
-      matches = [objectives.nearest_now(pc1_BxNx3 + f, pc2_BxMx3, search) for f in (flow, fitted)]
+      matches = [neighbours.nearest_now(pc1_BxNx3 + f, pc2_BxMx3, search) for f in (flow, fitted)]
       fitted = _choose(labels, flow, fitted, pc1_BxNx3, pc2_BxMx3, matches, chosen.descent.truncate)
     flow = guarded(labels, fitted, flow)
     clock("rigid clusters", flow)
@@ -160,7 +184,41 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
     fitted, motion_of = rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow, chosen.bodies)
     flow = guarded(motion_of, fitted, flow)
     clock("rigid bodies", flow)
+  if chosen.world is not None:
+    labels = _clusters(pc1_BxNx3, flow, graph[:, :, :chosen.clusters.neighbours + 1],
+                       chosen.clusters)
+    taken, flow_to = world_flow(pc1_BxNx3, pc2_BxMx3, flow, chosen.world, labels)
+    flow = guarded(np.where(taken, 0, -1), flow_to, flow)
+    clock("world", flow)
   return flow, info
+
+
+# The model frame is y up; jaxflow.lidar.ego registers z-up sweeps: (x, y, z) -> (z, x, y).
+_Z_UP = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def world_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, world: World, labels_BxN=None):
+  """Per pair, the points given the scene's GICP motion (B x N) and the flow with it (World).
+  `labels_BxN` (None: none): groups that move together (the rigid clusters of the flow); a group
+  that the world's motion fits worse than its flow, by more than the tie, keeps its flow whole (a
+  mover's roof or flank, parallel to its motion, cannot tell one motion from the other)."""
+  taken, out = [], []
+  labels = [None] * len(flow_BxNx3) if labels_BxN is None else np.asarray(labels_BxN)
+  for pc1, pc2, flow, label in zip(*(np.asarray(a, np.float64)
+                                     for a in (pc1_BxNx3, pc2_BxMx3, flow_BxNx3)), labels):
+    found = ego.estimate(pc1 @ _Z_UP.T, pc2 @ _Z_UP.T).motion
+    by_world = ((pc1 @ _Z_UP.T) @ found.rotation.T + found.translation) @ _Z_UP - pc1
+    target = registration.PlaneTarget(pc2)
+    costs = [target.plane_distance(pc1 + f, world.truncate) for f in (by_world, flow)]
+    near = neighbours.Tree(pc1).knn(pc1, world.neighbours)
+    take = costs[0][near].mean(1) <= costs[1][near].mean(1) + world.tie
+    if label is not None:
+      _, group = np.unique(label, return_inverse=True)
+      worse = np.bincount(group, costs[0] - costs[1]) > world.tie * np.bincount(group)
+      take &= ~worse[group]
+    taken.append(take)
+    out.append(np.where(take[:, None], by_world, flow))
+  return np.stack(taken), np.stack(out).astype(np.float32)
 
 
 class _Guarded:
