@@ -19,7 +19,7 @@ from jaxflow.runtime import configfile
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m.
-STILL = {"max_yaw_deg_per_s": 0.0, "search.per_s": 0.0, "margin": 1.0}  # no motion beats still
+STILL = {"max_yaw_deg_per_s": 0.0, "search.per_s": 0.0, "judge.margin": 1.0}  # none beats still
 
 
 def test_the_per_second_settings_at_10_hz_are_the_per_frame_numbers():
@@ -28,13 +28,13 @@ def test_the_per_second_settings_at_10_hz_are_the_per_frame_numbers():
   assert rate == 10.0 and config.max_range == 35.0
   assert config.objects.search.per_s / rate == 3.5  # metres a frame
   assert config.objects.max_yaw_deg_per_s / rate == 10.0  # degrees a frame
-  for field, frame in (("search_yaw_deg_per_s", np.arange(-6.0, 6.01, 1.0)),
-                       ("search_x_per_s", np.arange(-4.0, 4.01, 0.5)),
-                       ("search_y_per_s", np.arange(-1.5, 1.51, 0.5))):
-    lowest, highest, step = (v / rate for v in getattr(config.ego, field))
+  for field, frame in (("yaw_deg_per_s", np.arange(-6.0, 6.01, 1.0)),
+                       ("x_per_s", np.arange(-4.0, 4.01, 0.5)),
+                       ("y_per_s", np.arange(-1.5, 1.51, 0.5))):
+    lowest, highest, step = (v / rate for v in getattr(config.ego.search, field))
     np.testing.assert_array_equal(np.arange(lowest, highest + step / 2, step), frame)
-    assert ego.search_grid(getattr(config.ego, field), rate).tobytes() == frame.tobytes()
-  np.testing.assert_array_equal(ego.search_grid(config.ego.search_x_per_s, 20.0),
+    assert ego.search_grid(getattr(config.ego.search, field), rate).tobytes() == frame.tobytes()
+  np.testing.assert_array_equal(ego.search_grid(config.ego.search.x_per_s, 20.0),
                                 np.arange(-2.0, 2.01, 0.25))  # a 20 Hz sensor: half as far
 
 
@@ -174,10 +174,10 @@ def test_a_wrong_sweep_field_is_one_line_and_exit_2(runs, run, says):
 def test_a_bad_value_is_refused_naming_its_field():
   with pytest.raises(ValueError, match=r"lidar objects\.cell must be a finite number >= 0, got -"):
     lidar_settings.Objects(cell=-0.3)
-  with pytest.raises(ValueError, match=r"lidar ego\.gicp_iterations must be an integer >= 0, got"):
-    lidar_settings.Ego(gicp_iterations=2.5)
-  with pytest.raises(ValueError, match=r"lidar ground\.surface_windows must be"):
-    lidar_settings.Ground(surface_windows=(5, float("nan")))
+  with pytest.raises(ValueError, match=r"lidar ego\.gicp\.iterations must be an integer >= 0, "):
+    lidar_settings.Gicp(iterations=2.5)
+  with pytest.raises(ValueError, match=r"lidar ground\.surface\.windows must be"):
+    lidar_settings.GroundSurface(windows=(5, float("nan")))
   with pytest.raises(ValueError, match="lidar objects.person.top must be"):
     lidar_settings.Person(top=(1.0,))
   with pytest.raises(ValueError, match="lidar frame_rate_hz must be > 0"):
@@ -202,6 +202,36 @@ def test_a_sub_blocks_field_is_set_by_its_dotted_path():
     registry.settings("lidar", fields={"objects.person.radius": "-1"})
   with pytest.raises(ConfigError, match=r"objects\.person_radius: no field 'person_radius'"):
     registry.settings("lidar", fields={"objects.person_radius": "0.6"})  # the flat name is gone
+
+
+@pytest.mark.parametrize("path, value, block, bad, flat", [
+  ("ground.surface.cell", "1.0", lidar_settings.GroundSurface(cell=1.0), "-1",
+   "ground.surface_cell"),
+  ("ground.up_check.planes", "200", lidar_settings.UpCheck(planes=200), "-1",
+   "ground.up_check_planes"),
+  ("ego.gicp.iterations", "20", lidar_settings.Gicp(iterations=20), "-1", "ego.gicp_iterations"),
+  ("ego.search.x_per_s", "(-30.0, 30.0, 5.0)", lidar_settings.EgoSearch(x_per_s=(-30.0, 30.0, 5.0)),
+   "(1.0, 2.0)", "ego.search_x_per_s"),
+  ("objects.judge.hidden_fit", "0.4", lidar_settings.Judge(hidden_fit=0.4), "-1",
+   "objects.hidden_fit"),
+])
+def test_the_ground_ego_and_judge_blocks_are_set_by_their_dotted_paths(path, value, block, bad,
+                                                                       flat):
+  """--method.lidar.ground.surface.cell=1.0 and the like reach their block, the rest left at
+  their defaults; a bad value is refused naming the flag; the old flat name is refused."""
+  def replaced(settings, dotted, value):
+    head, _, rest = dotted.partition(".")
+    inner = replaced(getattr(settings, head), rest, value) if rest else value
+    return dataclasses.replace(settings, **{head: inner})
+
+  chosen = registry.settings("lidar", fields={path: value})
+  assert chosen == replaced(registry.settings("lidar"), path.rsplit(".", 1)[0], block)
+  with pytest.raises(ConfigError, match=rf"^method\.lidar\.{re.escape(path)}: lidar "
+                     rf"{re.escape(path)} must be "):
+    registry.settings("lidar", fields={path: bad})
+  old = flat.rsplit(".", 1)[1]
+  with pytest.raises(ConfigError, match=rf"{re.escape(flat)}: no field '{old}'"):
+    registry.settings("lidar", fields={flat: value})
 
 
 def test_every_setting_is_checked_by_its_own_block():

@@ -5,7 +5,7 @@ result chosen by how well it explains the static world.
     static_flow_Nx3 = ego.motion.flow(pc1_Nx3)
 
 Registration is small_gicp's generalized ICP on all the points (ground included, when the sweep
-has one), coarse to fine (`scales`: voxel size, neighbours for each point's covariance, largest
+has one), coarse to fine (`gicp.scales`: voxel size, neighbours for each point's covariance, largest
 match). Covariances from 20-30 neighbours of a voxelled cloud matter on real sweeps: with 10
 neighbours of 0.25 m voxels a neighbourhood is often one beam's ring, whose covariance pulls the
 two sweeps' ring patterns together (0.17 m of false height on a real Argoverse 2 pair with its
@@ -94,23 +94,23 @@ class Registration:
     """small_gicp's GICP of pc1 onto pc2 from `start`, one pass per scale (coarse to fine;
     default the settings' scales)."""
     transform = _matrix(start)
-    for voxel, count, match in self.settings.scales if scales is None else scales:
+    for voxel, count, match in self.settings.gicp.scales if scales is None else scales:
       source, target, tree = self.clouds(voxel, count)
       if target.size() < count or source.size() < count:
         break
       result = small_gicp.align(target, source, tree, init_T_target_source=transform,
                                 registration_type="GICP", max_correspondence_distance=match,
                                 num_threads=GICP_THREADS,
-                                max_iterations=self.settings.gicp_iterations)
+                                max_iterations=self.settings.gicp.iterations)
       transform = result.T_target_source
     return rigid.Motion.of(transform[:3, :3], transform[:3, 3])
 
   def trimmed(self, motion: rigid.Motion, residual: "Residual") -> rigid.Motion:
     """GICP's finer passes again on the pc1 points within `inlier` of pc2's surfaces after
-    `motion`, `trim_rounds` times: GICP has no robust loss, so a bus passing beside the sensor in
-    a narrow street can pull it off (0.45 m on a generated city pair; 8 mm trimmed)."""
-    scales, inlier = self.settings.scales, self.settings.inlier
-    for _ in range(self.settings.trim_rounds):
+    `motion`, `gicp.trim_rounds` times: GICP has no robust loss, so a bus passing beside the
+    sensor in a narrow street can pull it off (0.45 m on a generated city pair; 8 mm trimmed)."""
+    scales, inlier = self.settings.gicp.scales, self.settings.inlier
+    for _ in range(self.settings.gicp.trim_rounds):
       kept = residual.per_point(motion, self.pc1) < inlier
       if kept.sum() < min_points(self.settings):
         break
@@ -154,12 +154,12 @@ class Target:
 
   def __init__(self, pc2_Mx3, ground2_M=None, settings=None):
     settings = DEFAULTS.ego if settings is None else settings
-    k, self.max_match = settings.neighbours, settings.max_match
+    k, self.max_match = settings.search.neighbours, settings.search.max_match
     above = np.asarray(pc2_Mx3, np.float64)
     if ground2_M is not None:
       above = above[~np.asarray(ground2_M, bool)]
     if len(above):  # seen from above, a wall's rings stack: one point a `bev_cell` cell (the mean)
-      cells = np.floor(above[:, :2] / settings.bev_cell).astype(np.int64)
+      cells = np.floor(above[:, :2] / settings.search.bev_cell).astype(np.int64)
       _, inverse, count = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
       inverse = inverse.reshape(-1)
       above = np.stack([np.bincount(inverse, above[:, i]) / count for i in range(3)], 1)
@@ -171,10 +171,10 @@ class Target:
     if len(above) > k:
       values, vectors = neighbours.local_spread(above[:, :2], k, self.tree)
       self.normal_Mx2 = vectors[:, :, 0]  # least spread: across the line
-      self.line_M = values[:, 0] < settings.line ** 2 * np.maximum(values[:, 1], 1e-12)
+      self.line_M = values[:, 0] < settings.search.line ** 2 * np.maximum(values[:, 1], 1e-12)
       # Neither a line nor a small blob (a pole): an area seen from above (a tree's crown, a
       # roof), whose visible rim moves with the sensor: no residual there.
-      self.usable_M = self.line_M | (values[:, 1] < settings.blob ** 2 * k)
+      self.usable_M = self.line_M | (values[:, 1] < settings.search.blob ** 2 * k)
 
   def bev_rows(self, moved_Kx3) -> registration.Rows:
     """Residual rows seen from above: one row a matched point with a line (across it), two rows
@@ -198,13 +198,13 @@ class Target:
 
 def search(target: Target, above_Kx3, scale: float = 0.5, settings=None,
            frame_rate_hz: float | None = None) -> rigid.Motion:
-  """The best yaw x forward x lateral motion of a coarse grid (the settings' search_*_per_s a
+  """The best yaw x forward x lateral motion of a coarse grid (the settings' search.*_per_s a
   frame): the least mean bird's-eye distance of the moved points to pc2's, each at most `scale`
   (one k-d tree query for the whole grid)."""
   settings, rate = DEFAULTS.ego if settings is None else settings, _rate(frame_rate_hz)
-  yaw, x, y = np.meshgrid(np.radians(search_grid(settings.search_yaw_deg_per_s, rate)),
-                          search_grid(settings.search_x_per_s, rate),
-                          search_grid(settings.search_y_per_s, rate), indexing="ij")
+  yaw, x, y = np.meshgrid(np.radians(search_grid(settings.search.yaw_deg_per_s, rate)),
+                          search_grid(settings.search.x_per_s, rate),
+                          search_grid(settings.search.y_per_s, rate), indexing="ij")
   yaw, x, y = yaw.ravel(), x.ravel(), y.ravel()
   c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
   px, py = above_Kx3[None, :, 0], above_Kx3[None, :, 1]
@@ -218,7 +218,7 @@ def search(target: Target, above_Kx3, scale: float = 0.5, settings=None,
 def min_points(settings) -> int:
   """The fewest points GICP fits (a lidar.settings.Ego): three times the neighbours a point takes
   in its finest pass."""
-  return 3 * settings.scales[-1][1]
+  return 3 * settings.gicp.scales[-1][1]
 
 
 def estimate(pc1_Nx3, pc2_Mx3, ground1_N=None, ground2_M=None, starts=None, seed: int = 0,
@@ -243,7 +243,7 @@ def estimate(pc1_Nx3, pc2_Mx3, ground1_N=None, ground2_M=None, starts=None, seed
     target = Target(pc2, ground2_M, settings)
     if len(above1) >= 3 and target.tree is not None:
       rng = np.random.default_rng(seed)
-      sample = min(len(above1), settings.search_sample)
+      sample = min(len(above1), settings.search.sample)
       coarse = above1[rng.choice(len(above1), sample, replace=False)]
       begin["search"] = search(target, coarse, settings=settings, frame_rate_hz=frame_rate_hz)
   for name, start in begin.items():

@@ -223,15 +223,15 @@ def _lowest_grids(uv_Nx2, h_N, origin, cell: float, n: int):
 
 def _grow(coef_HxWx3, occupied_HxW, u_HxW, v_HxW, h_HxW, settings):
   """(coef, supported) of the lowest points' surface grown from `coef_HxWx3` round by round: each
-  round refits every window to the cells not more than `surface_above` above the current
+  round refits every window to the cells not more than `surface.above` above the current
   surface, until no cell gains support."""
   supported = np.zeros(occupied_HxW.shape, bool)
-  for _ in range(settings.surface_rounds):
+  for _ in range(settings.surface.rounds):
     residual = h_HxW - (coef_HxWx3[..., 0] * u_HxW + coef_HxWx3[..., 1] * v_HxW
                         + coef_HxWx3[..., 2])
-    weight = (occupied_HxW & (residual < settings.surface_above)).astype(np.float64)
+    weight = (occupied_HxW & (residual < settings.surface.above)).astype(np.float64)
     new, done = _fit_windows(coef_HxWx3, weight, u_HxW, v_HxW, h_HxW,
-                             tuple(settings.surface_windows), settings.max_tilt_deg)
+                             tuple(settings.surface.windows), settings.max_tilt_deg)
     grown = (done & ~supported).sum()
     coef_HxWx3, supported = new, done
     if not grown:
@@ -240,10 +240,10 @@ def _grow(coef_HxWx3, occupied_HxW, u_HxW, v_HxW, h_HxW, settings):
 
 
 def _refit_near(surface: Surface, points_Nx3, uv_Nx2, h_N, settings) -> Surface:
-  """The surface refitted to the mean of every point near it (|height| < surface_near) in each
+  """The surface refitted to the mean of every point near it (|height| < surface.near) in each
   cell, weighted by their count: the lowest points lie low by the noise."""
   n = surface.coef_HxWx3.shape[0]
-  near = np.abs(surface.height(points_Nx3)) < settings.surface_near
+  near = np.abs(surface.height(points_Nx3)) < settings.surface.near
   ij = surface._cells(uv_Nx2[near])
   flat_near = ij[:, 0] * n + ij[:, 1]
   count = np.bincount(flat_near, minlength=n * n).reshape(n, n).astype(np.float64)
@@ -251,7 +251,7 @@ def _refit_near(surface: Surface, points_Nx3, uv_Nx2, h_N, settings) -> Surface:
            for x in (uv_Nx2[near, 0], uv_Nx2[near, 1], h_N[near])]
   # means are reliable: a 3-cell window where it holds
   new, _ = _fit_windows(surface.coef_HxWx3, np.sqrt(count), *means,
-                        (3, *settings.surface_windows), settings.max_tilt_deg)
+                        (3, *settings.surface.windows), settings.max_tilt_deg)
   return Surface(surface.up, surface.cell, surface.origin, new, surface.supported_HxW,
                  settings.margin)
 
@@ -261,14 +261,14 @@ def fit_surface(points_Nx3, up: str = "z", plane: Plane | None = None, name: str
                 settings=None) -> Surface:
   """The local ground of a sweep (or of two sweeps put in one frame): per cell, a plane fitted to
   the lowest points of the cells around it, the cells whose lowest point is more than
-  `surface_above` above the current surface left out (objects), grown round by round from
+  `surface.above` above the current surface left out (objects), grown round by round from
   `plane` (default: fit_ground's RANSAC plane within `plane_range` of the sensor) so that slopes
   and crowned roads are followed. A cell too far from any ground keeps the plane of the nearest
-  window that has one. `extent`, `cell`: default the settings' surface_extent, surface_cell.
+  window that has one. `extent`, `cell`: default the settings' surface.extent, surface.cell.
   """
   settings = DEFAULTS.ground if settings is None else settings
-  extent = settings.surface_extent if extent is None else extent
-  cell = settings.surface_cell if cell is None else cell
+  extent = settings.surface.extent if extent is None else extent
+  cell = settings.surface.cell if cell is None else cell
   k = frames.up_index(up)
   points = np.asarray(points_Nx3, np.float64)
   plane = plane or fit_ground(points, up, settings.plane_range, name=name, settings=settings)
@@ -325,8 +325,8 @@ def check_ground(surface: Surface, ground_N, name: str, up: str, points_Nx3=None
 def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
                   seed: int = 0, settings=None) -> str | None:
   """Refuses an up axis perpendicular to the sweep's largest plane when that plane holds a third
-  of the points (`up_check_share`) and more than what was taken as ground (`ground_fraction`,
-  times `up_check_over_ground`), and lies where a ground would (within `max_sensor_height` of the
+  of the points (`up_check.share`) and more than what was taken as ground (`ground_fraction`,
+  times `up_check.over_ground`), and lies where a ground would (within `max_sensor_height` of the
   origin): the ground is a sweep's largest plane, a wall rarely is. A perpendicular plane farther
   away (a facade beside a sweep whose ground was removed upstream) gives a note (returned)
   instead: `up` may well be right."""
@@ -337,8 +337,8 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
   if len(p) < 3:
     return None
   rng = np.random.default_rng(seed)
-  sample = p[rng.choice(len(p), min(len(p), settings.up_check_points), replace=False)]
-  triples = sample[rng.integers(0, len(sample), (settings.up_check_planes, 3))]
+  sample = p[rng.choice(len(p), min(len(p), settings.up_check.points), replace=False)]
+  triples = sample[rng.integers(0, len(sample), (settings.up_check.planes, 3))]
   normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
   norms = np.linalg.norm(normals, axis=1)
   ok = norms > 1e-6
@@ -349,9 +349,9 @@ def check_up_axis(points_Nx3, up: str, name: str, ground_fraction: float,
             < settings.inlier).sum(1)
   best = int(np.argmax(counts))
   share = counts[best] / len(sample)
-  across = abs(normals[best, k]) < np.cos(np.radians(settings.up_check_tilt_deg))
-  if not (share > settings.up_check_share
-          and share > settings.up_check_over_ground * ground_fraction and across):
+  across = abs(normals[best, k]) < np.cos(np.radians(settings.up_check.tilt_deg))
+  if not (share > settings.up_check.share
+          and share > settings.up_check.over_ground * ground_fraction and across):
     return None
   along = "xyz"[int(np.argmax(np.abs(normals[best])))]
   distance = abs(float(normals[best] @ triples[best, 0]))  # of the origin from the plane

@@ -4,7 +4,8 @@ placement must pass to replace one (jaxflow.lidar.objects, jaxflow.lidar.along).
     c = costs(tree, points_Kx3, view, ego_motion, truncation(points_Kx3, points_Kx3, settings))
     clearly_better(still_costs, moved_costs, settings)   # moved replaces standing still
 
-The names are fields of jaxflow.lidar.settings.Objects.
+`settings` is the objects block (jaxflow.lidar.settings.Objects); the names are fields of its
+`judge` block (Judge), but `min_points`.
 """
 
 import numpy as np
@@ -32,8 +33,9 @@ def mean(costs, min_seen: float) -> float:
 def rule(settings) -> groups.Rule:
   """The objects block's judgement: a motion beats standing still by `margin`, by
   `relative_margin` of still's cost and by `significance` standard errors."""
-  return groups.Rule(settings.margin, settings.relative_margin, settings.significance,
-                     settings.min_seen, settings.min_points // 2)
+  judging = settings.judge
+  return groups.Rule(judging.margin, judging.relative_margin, judging.significance,
+                     judging.min_seen, settings.min_points // 2)
 
 
 def clearly_better(base, other, settings) -> bool:
@@ -41,11 +43,13 @@ def clearly_better(base, other, settings) -> bool:
   come nearer along the line of sight hides its old place), the other must fit within
   `hidden_fit` on its own."""
   verdict = groups.beats(base, other, rule(settings))
-  return mean(other, settings.min_seen) <= settings.hidden_fit if verdict is None else verdict
+  judging = settings.judge
+  return mean(other, judging.min_seen) <= judging.hidden_fit if verdict is None else verdict
 
 
 def truncation(pts_Kx3, queries_Qx3, s) -> float:
   """An object's cost truncation (m): `spacings` of its median point spacing (each query's
   nearest other point of the object), within truncate .. max_truncate."""
   spacing = np.median(neighbours.Tree(pts_Kx3).knn(queries_Qx3, 2, distances=True)[0][:, 1])
-  return float(np.clip(s.spacings * spacing, s.truncate, s.max_truncate))
+  judging = s.judge
+  return float(np.clip(judging.spacings * spacing, judging.truncate, judging.max_truncate))

@@ -69,8 +69,7 @@ def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion, settings) -> r
 def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
   """The best horizontal translation within +-`search` m (3-D cost; coarse, then fine)."""
   best = np.zeros(3)
-  truncate = settings.truncate
-  coarse = settings.search.coarse_step
+  truncate, coarse = settings.judge.truncate, settings.search.coarse_step
   for half, step in ((search, coarse), (coarse, settings.search.step / 2)):
     steps = np.arange(-half, half + 1e-9, step)
     dx, dy = np.meshgrid(steps, steps, indexing="ij")
@@ -191,7 +190,7 @@ def _new_place(scene, pts_Kx3, fit) -> bool:
   to one pc1 showed empty (`_novelty`), and the part is object-sized (`part.size` wide)."""
   s = scene.settings
   _, motion, truncate = fit
-  return bool(judge.mean(scene.costs(pts_Kx3, truncate), s.min_seen) >= s.part.vacated
+  return bool(judge.mean(scene.costs(pts_Kx3, truncate), s.judge.min_seen) >= s.part.vacated
               and np.ptp(pts_Kx3[:, :2], axis=0).max() >= s.part.size
               and _novelty(scene, pts_Kx3, motion, truncate) >= s.novelty)
 
@@ -240,7 +239,7 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
       if not scene.plausible(m, judged):
         continue
       c = scene.costs(m.apply(judged), truncate)
-      if judge.mean(c, s.min_seen) < judge.mean(best[2], s.min_seen):
+      if judge.mean(c, s.judge.min_seen) < judge.mean(best[2], s.judge.min_seen):
         best = name, m, c
   if vote is not None:  # a long object: its ends say where it is along its flat side
     best = along.adopt(scene, judged, truncate, vote, (best, still_costs),
@@ -251,8 +250,8 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   refit = _bev_icp(scene.target, pts_Kx3, best, s)  # chosen on halves: now fitted on all points
   if best_name.endswith("along"):  # a flat side: the refit slides along it, the ends say where
     refit = along.settle(scene.target, pts_Kx3, refit, vote, s)
-  if judge.mean(scene.costs(refit.apply(pts_Kx3), truncate), s.min_seen) <= judge.mean(
-      scene.costs(best.apply(pts_Kx3), truncate), s.min_seen):
+  if judge.mean(scene.costs(refit.apply(pts_Kx3), truncate), s.judge.min_seen) <= judge.mean(
+      scene.costs(best.apply(pts_Kx3), truncate), s.judge.min_seen):
     best = refit
   return best_name, best, truncate
 
@@ -299,9 +298,10 @@ def _scene(pc1, pc2_Mx3, ground1, ground2_M, ego_motion, s, ego_settings, rate, 
   if target.tree is None or len(above2) < 3:
     return None
   before = ego.Target(pc1, ground1, ego_settings)  # pc1 seen from above
+  visibility = views.View(pc2_Mx3, "z", s.judge.azimuth_bins, s.judge.elevation_bins,
+                          s.judge.hidden, sensor2)
   return _Scene(target, neighbours.Tree(above2), _per_point(before, above2) > s.unexplained,
-                along.before(pc1, before, ~ground1, above2, s.unexplained),
-                views.View(pc2_Mx3, "z", s.azimuth_bins, s.elevation_bins, s.hidden, sensor2),
+                along.before(pc1, before, ~ground1, above2, s.unexplained), visibility,
                 ego_motion, s.search.per_s / rate, s.max_yaw_deg_per_s / rate, s)
 
 

@@ -1,10 +1,12 @@
 r"""The raw-sweep pipeline's settings (the `lidar` method: ground, ego-motion, moving objects), one
-frozen dataclass a block, as every method's settings (jaxflow.methods.registry); the objects
-block's families (part, search, icp, person, along) are blocks of their own. Each block checks its
-own fields (__post_init__: a ValueError naming the setting, `lidar objects.person.radius`).
+frozen dataclass a block, as every method's settings (jaxflow.methods.registry); a block's
+families are blocks of their own (ground: surface, up_check; ego: gicp, search; objects: judge,
+part, search, icp, person, along). Each block checks its own fields (__post_init__: a ValueError
+naming the setting, `lidar objects.person.radius`).
 
     python -m jaxflow.predict a.npy b.npy --lidar --out f.npy --method.lidar.objects.cell=0.25
     python -m jaxflow.predict a.npy b.npy --lidar --method.lidar.objects.person.radius=0.6
+    python -m jaxflow.predict a.npy b.npy --lidar --method.lidar.ground.surface.cell=1.0
     python -m jaxflow.predict --method lidar --print_config      # every field, with its unit
     flow, info = raw_sweep_flow(None, pc1, pc2, settings=Sweep(max_range=50.0))   # from Python
     dataclasses.replace(s, objects=dataclasses.replace(s.objects, cell=0.25))     # one field
@@ -55,6 +57,38 @@ def _need(block, path: str, kind, *names):
 
 
 @dataclasses.dataclass(frozen=True)
+class GroundSurface:
+  """The local ground (jaxflow.lidar.ground.fit_surface): a height map of cells, each one's plane
+  fitted in windows around it, reweighted round by round."""
+  cell: float = 2.0  # m: cells of the local ground's height map
+  windows: tuple = (5, 11, 23)  # cells: windows of a cell's plane, smallest first
+  above: float = 0.2  # m: a cell's lowest point this far above: no ground (object)
+  near: float = 0.08  # m: points this near the surface refine its height
+  rounds: int = 24  # reweighting rounds (the ground grows a window a round)
+  extent: float = 110.0  # m: the height map's half width (edge cells beyond)
+
+  def __post_init__(self):
+    _need(self, "lidar ground.surface.", _NUMBER, "cell", "above", "near", "extent")
+    _need(self, "lidar ground.surface.", _COUNT, "rounds")
+    _need(self, "lidar ground.surface.", _SIZES, "windows")
+
+
+@dataclasses.dataclass(frozen=True)
+class UpCheck:
+  """The up-axis check (jaxflow.lidar.ground.check_up_axis): a plane of random triples of a sample
+  that holds more of the sweep than its ground, standing upright, refutes --up."""
+  points: int = 4000  # the up-axis check's sample of a sweep (seeded)
+  planes: int = 300  # its random planes (triples of the sample)
+  share: float = 1 / 3  # share of the sample the largest plane must hold
+  over_ground: float = 1.2  # ... and this many times the share taken as ground
+  tilt_deg: float = 45.0  # deg: a plane tilted more from --up stands upright
+
+  def __post_init__(self):
+    _need(self, "lidar ground.up_check.", _COUNT, "points", "planes")
+    _need(self, "lidar ground.up_check.", _NUMBER, "share", "over_ground", "tilt_deg")
+
+
+@dataclasses.dataclass(frozen=True)
 class Ground:
   """The ground (jaxflow.lidar.ground): RANSAC planes, the local surface, the up-axis check."""
   margin: float = 0.25  # m above the ground still ground (KITTI: y < -1.4, road -1.65)
@@ -64,62 +98,72 @@ class Ground:
   inlier: float = 0.1  # m: RANSAC inlier distance to a plane
   max_tilt_deg: float = 20.0  # deg: a ground plane's normal is within this of the up axis
   iterations: int = 200  # RANSAC's random triples
-  surface_cell: float = 2.0  # m: cells of the local ground's height map
-  surface_windows: tuple = (5, 11, 23)  # cells: windows of a cell's plane, smallest first
-  surface_above: float = 0.2  # m: a cell's lowest point this far above: no ground (object)
-  surface_near: float = 0.08  # m: points this near the surface refine its height
-  surface_rounds: int = 24  # reweighting rounds (the ground grows a window a round)
-  surface_extent: float = 110.0  # m: the height map's half width (edge cells beyond)
   max_sensor_height: float = 5.0  # m: a ground farther below the origin: a note
   # Not 0: vehicle (ego) frames, Argoverse 2's and Waymo's, put the origin near the ground.
   min_sensor_height: float = -1.0  # m: a ground higher above the origin: a note
   max_ground_fraction: float = 0.85  # a "ground" holding more of a sweep: a note
-  up_check_points: int = 4000  # the up-axis check's sample of a sweep (seeded)
-  up_check_planes: int = 300  # its random planes (triples of the sample)
-  up_check_share: float = 1 / 3  # share of the sample the largest plane must hold
-  up_check_over_ground: float = 1.2  # ... and this many times the share taken as ground
-  up_check_tilt_deg: float = 45.0  # deg: a plane tilted more from --up stands upright
+  surface: GroundSurface = GroundSurface()
+  up_check: UpCheck = UpCheck()
 
   def __post_init__(self):
     _need(self, "lidar ground.", _NUMBER, "margin", "plane_range", "cell", "lowest", "inlier",
-          "max_tilt_deg", "surface_cell", "surface_above", "surface_near", "surface_extent",
-          "max_sensor_height", "max_ground_fraction", "up_check_share", "up_check_over_ground",
-          "up_check_tilt_deg")
+          "max_tilt_deg", "max_sensor_height", "max_ground_fraction")
     _need(self, "lidar ground.", _SIGNED, "min_sensor_height")
-    _need(self, "lidar ground.", _COUNT, "iterations", "surface_rounds", "up_check_points",
-          "up_check_planes")
-    _need(self, "lidar ground.", _SIZES, "surface_windows")
+    _need(self, "lidar ground.", _COUNT, "iterations")
+    _need(self, "lidar ground.", _block(GroundSurface), "surface")
+    _need(self, "lidar ground.", _block(UpCheck), "up_check")
 
 
 @dataclasses.dataclass(frozen=True)
-class Ego:
-  """The sensor's motion (jaxflow.lidar.ego): GICP coarse to fine and the grid search."""
+class Gicp:
+  """small_gicp's GICP passes, coarse to fine, and their refit on the points the fit explains."""
   # Coarse to fine: (voxel m, neighbours of a covariance, largest match m) of each GICP pass.
   scales: tuple = ((1.0, 20, 3.0), (0.5, 20, 1.0), (0.25, 30, 0.5))
-  gicp_iterations: int = 30  # GICP iterations a pass
+  iterations: int = 30  # GICP iterations a pass
   trim_rounds: int = 2  # GICP again on the points the fit explains
-  residual_voxel: float = 0.5  # m: voxels of the static residual's clouds
-  residual_neighbours: int = 20  # points of the static residual's local planes
-  truncate: float = 0.3  # m: a point's static residual is at most this
-  inlier: float = 0.1  # m: a point this near pc2's local plane is explained
-  plausible_inliers: float = 0.5  # share explained below which the fit is a note
-  search_sample: int = 600  # points of the coarse grid search
+
+  def __post_init__(self):
+    _need(self, "lidar ego.gicp.", _PASSES, "scales")
+    _need(self, "lidar ego.gicp.", _COUNT, "iterations", "trim_rounds")
+
+
+@dataclasses.dataclass(frozen=True)
+class EgoSearch:
+  """The coarse grid search seen from above, GICP's start (jaxflow.lidar.ego.search), on pc2's
+  bird's-eye lines (ego.Target, which the objects' residuals use too)."""
+  sample: int = 600  # points of the coarse grid search
   neighbours: int = 8  # bird's-eye neighbours of a pc2 point for its line
   bev_cell: float = 0.1  # m: pc2's points above the ground merged per cell seen from above
   max_match: float = 1.5  # m: a bird's-eye match farther than this is no match
   line: float = 0.15  # minor / major spread below which a neighbourhood is a line
   blob: float = 0.15  # m: spread below which in every direction a neighbourhood is a pole
-  search_yaw_deg_per_s: tuple = (-60.0, 60.0, 10.0)  # deg/s: the coarse search's yaws
-  search_x_per_s: tuple = (-40.0, 40.0, 5.0)  # m/s: the coarse search's forward motions
-  search_y_per_s: tuple = (-15.0, 15.0, 5.0)  # m/s: the coarse search's sideways motions
+  yaw_deg_per_s: tuple = (-60.0, 60.0, 10.0)  # deg/s: the coarse search's yaws
+  x_per_s: tuple = (-40.0, 40.0, 5.0)  # m/s: the coarse search's forward motions
+  y_per_s: tuple = (-15.0, 15.0, 5.0)  # m/s: the coarse search's sideways motions
 
   def __post_init__(self):
-    _need(self, "lidar ego.", _NUMBER, "residual_voxel", "truncate", "inlier", "plausible_inliers",
-          "bev_cell", "max_match", "line", "blob")
-    _need(self, "lidar ego.", _COUNT, "gicp_iterations", "trim_rounds", "residual_neighbours",
-          "search_sample", "neighbours")
-    _need(self, "lidar ego.", _GRID, "search_yaw_deg_per_s", "search_x_per_s", "search_y_per_s")
-    _need(self, "lidar ego.", _PASSES, "scales")
+    _need(self, "lidar ego.search.", _COUNT, "sample", "neighbours")
+    _need(self, "lidar ego.search.", _NUMBER, "bev_cell", "max_match", "line", "blob")
+    _need(self, "lidar ego.search.", _GRID, "yaw_deg_per_s", "x_per_s", "y_per_s")
+
+
+@dataclasses.dataclass(frozen=True)
+class Ego:
+  """The sensor's motion (jaxflow.lidar.ego): GICP coarse to fine from the grid search's start and
+  others, the fits scored by their static residual."""
+  residual_voxel: float = 0.5  # m: voxels of the static residual's clouds
+  residual_neighbours: int = 20  # points of the static residual's local planes
+  truncate: float = 0.3  # m: a point's static residual is at most this
+  inlier: float = 0.1  # m: a point this near pc2's local plane is explained
+  plausible_inliers: float = 0.5  # share explained below which the fit is a note
+  gicp: Gicp = Gicp()
+  search: EgoSearch = EgoSearch()
+
+  def __post_init__(self):
+    _need(self, "lidar ego.", _NUMBER, "residual_voxel", "truncate", "inlier", "plausible_inliers")
+    _need(self, "lidar ego.", _COUNT, "residual_neighbours")
+    _need(self, "lidar ego.", _block(Gicp), "gicp")
+    _need(self, "lidar ego.", _block(EgoSearch), "search")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,6 +279,31 @@ class Along:
 
 
 @dataclasses.dataclass(frozen=True)
+class Judge:
+  """How an object's placement is judged against pc2 (jaxflow.lidar.judge): each point's cost, what
+  pc2 can see (its range image), and how clearly a motion must beat standing still."""
+  # A point's cost is its 3-D distance to pc2 truncated at `spacings` of the object's point
+  # spacings, within truncate .. max_truncate, in units of that truncation (0 .. 1).
+  truncate: float = 0.3  # m: the least truncation of a point's cost (the search's)
+  spacings: float = 3.0  # point spacings of an object: the truncation of its costs
+  max_truncate: float = 1.5  # m: the largest truncation of a point's cost
+  # A motion replaces standing still when its mean cost is lower by all of these:
+  margin: float = 0.05  # of the truncation: a motion's least gain over standing still
+  relative_margin: float = 0.1  # share of standing still's cost: the least gain too
+  significance: float = 3.0  # standard errors of the per-point gain: the least gain too
+  azimuth_bins: int = 1200  # columns of the visibility image (0.3 deg)
+  elevation_bins: int = 360  # rows of the visibility image (0.5 deg)
+  hidden: float = 0.5  # m behind pc2's return in its direction: hidden
+  hidden_fit: float = 0.45  # mean cost a motion must reach where pc2 hides still's place
+  min_seen: float = 0.3  # share visible in pc2 below which a motion is refused
+
+  def __post_init__(self):
+    _need(self, "lidar objects.judge.", _NUMBER, "truncate", "spacings", "max_truncate", "margin",
+          "relative_margin", "significance", "hidden", "hidden_fit", "min_seen")
+    _need(self, "lidar objects.judge.", _COUNT, "azimuth_bins", "elevation_bins")
+
+
+@dataclasses.dataclass(frozen=True)
 class Objects:
   """Moving objects (jaxflow.lidar.objects): groups from above, their motions, the judge."""
   cell: float = 0.3  # m: objects are connected cells from above (a cell's gap bridged)
@@ -250,22 +319,9 @@ class Objects:
   # ... unless it has this many: a car beside the sensor, sliding along its own side, is explained
   # but at its ends.
   many_unexplained: int = 100  # unexplained points that make any object a candidate
-  # A point's cost is its 3-D distance to pc2 truncated at `spacings` of the object's point
-  # spacings, within truncate .. max_truncate, in units of that truncation (0 .. 1).
-  truncate: float = 0.3  # m: the least truncation of a point's cost (the search's)
-  spacings: float = 3.0  # point spacings of an object: the truncation of its costs
-  max_truncate: float = 1.5  # m: the largest truncation of a point's cost
-  # A motion replaces standing still when its mean cost is lower by all of these:
-  margin: float = 0.05  # of the truncation: a motion's least gain over standing still
-  relative_margin: float = 0.1  # share of standing still's cost: the least gain too
-  significance: float = 3.0  # standard errors of the per-point gain: the least gain too
   max_yaw_deg_per_s: float = 100.0  # deg/s: an object turning faster is refused
   low_ground: float = 0.05  # m: "ground" this high in a moving object's cells moves too
-  azimuth_bins: int = 1200  # columns of the visibility image (0.3 deg)
-  elevation_bins: int = 360  # rows of the visibility image (0.5 deg)
-  hidden: float = 0.5  # m behind pc2's return in its direction: hidden
-  hidden_fit: float = 0.45  # mean cost a motion must reach where pc2 hides still's place
-  min_seen: float = 0.3  # share visible in pc2 below which a motion is refused
+  judge: Judge = Judge()
   part: Part = Part()
   search: Search = Search()
   icp: Icp = Icp()
@@ -274,13 +330,10 @@ class Objects:
 
   def __post_init__(self):
     _need(self, "lidar objects.", _NUMBER, "cell", "object_top", "novelty", "max_high",
-          "max_size", "unexplained", "min_unexplained", "truncate", "spacings", "max_truncate",
-          "margin", "relative_margin", "significance", "max_yaw_deg_per_s", "low_ground",
-          "hidden", "hidden_fit", "min_seen")
-    _need(self, "lidar objects.", _COUNT, "min_points", "many_unexplained", "azimuth_bins",
-          "elevation_bins")
-    for name, cls in (("part", Part), ("search", Search), ("icp", Icp), ("person", Person),
-                      ("along", Along)):
+          "max_size", "unexplained", "min_unexplained", "max_yaw_deg_per_s", "low_ground")
+    _need(self, "lidar objects.", _COUNT, "min_points", "many_unexplained")
+    for name, cls in (("judge", Judge), ("part", Part), ("search", Search), ("icp", Icp),
+                      ("person", Person), ("along", Along)):
       _need(self, "lidar objects.", _block(cls), name)
 
 

@@ -56,7 +56,7 @@ class SweepInfo:
   def note(self) -> str:
     moved = sum(m[0] for m in self.objects.moved)
     settings = self.settings
-    cell = f"ground plane per {settings.ground.surface_cell:g} m cell"
+    cell = f"ground plane per {settings.ground.surface.cell:g} m cell"
     if self.ego.start == "flow_fn":  # a camera's view: the method's flow and its rigid part
       return (f"--lidar: {cell}; removed {self.ground[0]} ground and "
               f"{self.far[0]} far points of PC1; flow estimated on {self.kept[0]} points; the "
@@ -104,10 +104,10 @@ def min_points(settings: Sweep | None = None) -> int:
 
 def too_few(settings: Sweep | None = None) -> str:
   """Why a sweep needs `min_points`, for the error of a smaller one."""
-  neighbours = settings_of(settings).ego.scales[-1][1]
+  neighbours = settings_of(settings).ego.gicp.scales[-1][1]
   return (f"the raw-sweep pipeline (--lidar, method lidar) needs at least {min_points(settings)} "
           f"points a sweep: its ego-motion fit (GICP) takes {neighbours} neighbours a point in its "
-          "finest pass, and three times as many points (--method.lidar.ego.scales)")
+          "finest pass, and three times as many points (--method.lidar.ego.gicp.scales)")
 
 
 def _surface(points_Nx3, name, notes, settings):
