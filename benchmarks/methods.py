@@ -8,7 +8,7 @@ its "train_all" and "val" splits read one after the other, each pair's EPE in th
 first --synthetic val pairs of synthetic_things and synthetic_lidar, 8192 points a cloud (the
 evaluation sampling, seed 0). The network is the shipped checkpoint. Seconds a pair are the wall
 time of the compiled method (compilation excluded; for optimise the network's time is included) on
-this machine. `--no-bodies`: optimise without its last stage (what jaxflow.refine.bodies gains).
+this machine. `--no-bodies`: optimise without its rigid bodies (what jaxflow.refine.bodies gains).
 """
 
 import argparse
@@ -53,7 +53,7 @@ def main():
   parser.add_argument("--methods", default="network,nsfp,optimise")
   parser.add_argument("--num-points", type=int, default=8192)
   parser.add_argument("--no-bodies", action="store_true",
-                      help="optimise without its last stage (jaxflow.refine.bodies): the gain it brings")
+                      help="optimise without its rigid bodies (jaxflow.refine.bodies): their gain")
   parser.add_argument("--host-memory", default=host_memory.RELEASE, choices=host_memory.CHOICES,
                       help="malloc releases freed memory (evaluate.py's default) or keeps it")
   args = parser.parse_args()

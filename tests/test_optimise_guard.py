@@ -15,7 +15,7 @@ from test_bodies import _pair
 
 
 def _guard(pc1, pc2, labels, new, given, guard=optimise.Guard()):
-  return np.asarray(optimise._Guarded(pc1[None], pc2[None], guard)(labels[None], new[None],
+  return np.asarray(optimise.Guarded(pc1[None], pc2[None], guard)(labels[None], new[None],
                                                                     given[None]))[0]
 
 

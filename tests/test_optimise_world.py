@@ -63,8 +63,9 @@ def _scene(seed=0):
 def _stage(pc1, pc2, flow, world=optimise.World()):
   """The stage as optimise runs it: on the rigid clusters of the flow, then guarded."""
   labels = rigid_clusters.clusters(pc1[None], flow[None], rigid_clusters.Settings())
-  taken, to = optimise.world_flow(pc1[None], pc2[None], flow[None], labels, world)
-  guarded = optimise._Guarded(pc1[None], pc2[None], optimise.Guard())
+  taken, to = optimise.world_flow(pc1[None], pc2[None], flow[None], labels,
+                                  optimise.registered_world(pc1[None], pc2[None]), world)
+  guarded = optimise.Guarded(pc1[None], pc2[None], optimise.Guard())
   return np.asarray(guarded(np.where(taken, 0, -1), to, flow[None]))[0]
 
 

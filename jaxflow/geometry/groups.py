@@ -7,7 +7,7 @@ a piece's own motion explains it better than another motion (the world's, standi
     keep = given_kept(groups, evidence.costs(pc1 + new), evidence.costs(pc1 + given), rule)
 
 The raw-sweep pipeline (jaxflow.lidar.objects: connected cells seen from above, each group fitted
-against standing still) and optimise's last stage (jaxflow.refine.bodies: sequential RANSAC and
+against standing still) and optimise's rigid bodies (jaxflow.refine.bodies: sequential RANSAC and
 an assignment, each body judged against the world's motion) both speak of groups this way and
 judge with `beats`; every stage of optimise keeps, group by group, the flow it was given where pc2
 does not support its new one (`given_kept`). A cost is per point (a distance to pc2, truncated),

@@ -160,7 +160,7 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
   `seconds`: a dict that gets each stage's seconds (each stage then waited for: a profile)."""
   clock = _Clock(seconds)
   clock("start", init_BxNx3, pc1_BxNx3, pc2_BxMx3)
-  guarded = _Guarded(pc1_BxNx3, pc2_BxMx3, chosen.guard)
+  guarded = Guarded(pc1_BxNx3, pc2_BxMx3, chosen.guard)
   search = chosen.descent.search
   grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.descent, now=True)
   k = max(chosen.descent.neighbours, chosen.polish.neighbours, chosen.clusters.neighbours)
@@ -195,7 +195,8 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
   if chosen.world is not None:
     labels = _clusters(pc1_BxNx3, flow, graph[:, :, :chosen.clusters.neighbours + 1],
                        chosen.clusters)
-    taken, flow_to = world_flow(pc1_BxNx3, pc2_BxMx3, flow, labels, chosen.world)
+    taken, flow_to = world_flow(pc1_BxNx3, pc2_BxMx3, flow, labels,
+                                registered_world(pc1_BxNx3, pc2_BxMx3), chosen.world)
     flow = guarded(np.where(taken, 0, -1), flow_to, flow)
     clock("world", flow)
   return flow, info
@@ -205,15 +206,23 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
 _Z_UP = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
-def world_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, labels_BxN, world: World):
-  """Per pair, the points given the scene's GICP motion (B x N) and the flow with it (World);
-  `labels_BxN`: the clusters of the flow (jaxflow.refine.rigid_clusters)."""
-  taken, out = [], []
-  for pc1, pc2, flow, label in zip(*(np.asarray(a, np.float64)
-                                     for a in (pc1_BxNx3, pc2_BxMx3, flow_BxNx3)),
-                                   np.asarray(labels_BxN)):
+def registered_world(pc1_BxNx3, pc2_BxMx3) -> np.ndarray:
+  """Per pair, the flow of the scene's one rigid motion registered by GICP (B x N x 3)."""
+  out = []
+  for pc1, pc2 in zip(np.asarray(pc1_BxNx3, np.float64), np.asarray(pc2_BxMx3, np.float64)):
     found = ego.estimate(pc1 @ _Z_UP.T, pc2 @ _Z_UP.T).motion
-    by_world = ((pc1 @ _Z_UP.T) @ found.rotation.T + found.translation) @ _Z_UP - pc1
+    out.append(((pc1 @ _Z_UP.T) @ found.rotation.T + found.translation) @ _Z_UP - pc1)
+  return np.stack(out)
+
+
+def world_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, labels_BxN, by_world_BxNx3, world: World):
+  """Per pair, the points given the world's motion (B x N) and the flow with it (World).
+  `labels_BxN`: the clusters of the flow (jaxflow.refine.rigid_clusters); `by_world_BxNx3`: the
+  world's flow (registered_world)."""
+  taken, out = [], []
+  for pc1, pc2, flow, by_world, label in zip(
+      *(np.asarray(a, np.float64) for a in (pc1_BxNx3, pc2_BxMx3, flow_BxNx3, by_world_BxNx3)),
+      np.asarray(labels_BxN)):
     target = registration.PlaneTarget(pc2)
     costs = [target.plane_distance(pc1 + f, world.truncate) for f in (by_world, flow)]
     near = neighbours.Tree(pc1).knn(pc1, world.neighbours)
@@ -227,7 +236,7 @@ def world_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, labels_BxN, world: World):
   return np.stack(taken), np.stack(out).astype(np.float32)
 
 
-class _Guarded:
+class Guarded:
   """guarded(labels B x N, new, given) -> per pair, each group's new flow where pc2 supports it
   and its given flow elsewhere (Guard; None: the new flow everywhere)."""
 

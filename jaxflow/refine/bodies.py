@@ -1,4 +1,4 @@
-"""The rigid bodies of a scene, found from a flow and fitted to pc2: the last stage of `optimise`.
+"""The rigid bodies of a scene, found from a flow and fitted to pc2: a stage of `optimise`.
 
     flow_Nx3, found = rigid_bodies(pc1_Nx3, pc2_Mx3, flow_Nx3)   # NumPy + SciPy, on the host
 
