@@ -1,9 +1,8 @@
 """The `optimise` method: the network's flow refined per pair by the fast optimiser (distance-grid
 Chamfer + smoothness, then the piecewise-rigid steps of jaxflow.refine.rigid_clusters, an exact
-polish, and the scene's rigid bodies fitted to pc2 by jaxflow.refine.bodies, each stage adopted
-only where pc2 supports it): the recommended
-method for pairs that are not raw LiDAR sweeps (those take the `lidar` method), and predict's
-default."""
+polish, the scene's rigid bodies fitted to pc2 by jaxflow.refine.bodies, and the world's motion
+registered by GICP, each stage adopted only where pc2 supports it): the recommended method for
+pairs that are not raw LiDAR sweeps (those take the `lidar` method), and predict's default."""
 
 import dataclasses
 import functools
