@@ -15,9 +15,11 @@ FD / FS / BS averaged over the pairs that have such points, "mean" over the pair
   the rigid motion fitted to its static part), both with the network alone (8192 points, 32
   iterations), on the first pairs only (a network call takes 5-80 s on a loaded 2-core CPU).
 Seconds: wall time a pair in this process (the machine may be shared; the JSON says how loaded).
-Then the official readings of the same flows (jaxflow.evaluation.av2_eval, equal to av2's
-evaluator): the av2 breakdown count-weighted over the split (EPE 3-Way Average) and the 2024
-bucketed normalised EPE.
+Both directions: with `--directions forward,backward` (the default) the default pipeline runs on
+each pair taken backwards too (pc1 the later sweep: `synthetic_sweep`'s reverse option), its rows
+named "..., backward". Then the official readings of the same flows (jaxflow.evaluation.av2_eval,
+equal to av2's evaluator): the av2 breakdown count-weighted over the split (EPE 3-Way Average) and
+the 2024 bucketed normalised EPE, overall and by class.
 """
 
 import argparse
@@ -77,6 +79,9 @@ def parse_args():
   parser.add_argument("--network-pairs", type=int, default=0)
   parser.add_argument("--nsfp-pairs", type=int, default=0)
   parser.add_argument("--split", default="test")
+  parser.add_argument("--directions", default="forward,backward",
+                      help="forward, backward or both: backward runs the default pipeline on each "
+                      "pair taken backwards")
   parser.add_argument("--json", default=None)
   return parser.parse_args()
 
@@ -113,16 +118,29 @@ def methods_of(args):
   return methods
 
 
+BACKWARD = ", backward"  # the suffix of a row run on the pairs taken backwards
+
+
 def score_pairs(args, methods):
   """({row: [three-way EPE, EPE and seconds of each pair]}, {row: [summed av2 breakdown, summed
   buckets]}) over the split's first args.pairs pairs, each printed as it is done."""
-  per = {k: [] for k in methods}
-  official = {k: [0.0, 0.0] for k in methods}
+  directions = args.directions.split(",")
+  if not set(directions) <= {"forward", "backward"} or not directions:
+    raise SystemExit(f"--directions: forward, backward or both, got {args.directions!r}")
+  rows = {}
+  if "forward" in directions:
+    rows.update({name: (m, ss.Options()) for name, m in methods.items()})
+  if "backward" in directions:
+    rows["ego + objects (default)" + BACKWARD] = (methods["ego + objects (default)"],
+                                                   ss.Options(reverse=True))
+  per = {k: [] for k in rows}
+  official = {k: [0.0, 0.0] for k in rows}
   for i in range(args.pairs):
-    s = ss.sweep_pair(args.split, i)
-    for name, (fn, sampled, pairs) in methods.items():
+    built = {}
+    for name, ((fn, sampled, pairs), options) in rows.items():
       if i >= pairs:
         continue
+      s = built.setdefault(options.reverse, ss.sweep_pair(args.split, i, options))
       pair = subsample(s, 8192) if sampled else s
       start = time.perf_counter()
       flow = fn(pair)
@@ -140,7 +158,8 @@ def score_pairs(args, methods):
 
 
 def official_table(per, official):
-  """Prints the official readings (av2 breakdown, bucketed) of each row; returns them."""
+  """Prints the official readings (av2 breakdown, bucketed overall and by class) of each row;
+  returns them."""
   av2_rows = {}
   print("\n| method | pairs | av2 EPE 3-Way Average | FD | FS | BS | Dynamic IoU | bucketed static "
         "EPE | bucketed dynamic normalised EPE |\n|---|---|---|---|---|---|---|---|---|")
@@ -153,6 +172,13 @@ def official_table(per, official):
           f"{r['EPE/Foreground/Dynamic']:.4f} | {r['EPE/Foreground/Static']:.4f} | "
           f"{r['EPE/Background/Static']:.4f} | {r['Dynamic IoU']:.3f} | {b['static_epe']:.4f} | "
           f"{b['dynamic_norm_epe']:.4f} |")
+  classes = [c for c in av2_eval.META_CLASSES if c != "BACKGROUND"]
+  print("\nbucketed dynamic normalised EPE by class (points)\n| method | "
+        + " | ".join(classes) + " |\n" + "|---" * (len(classes) + 1) + "|")
+  for name, rows in av2_rows.items():
+    by = rows["bucketed"]["classes"]
+    print(f"| {name} | " + " | ".join(f"{by[c]['dynamic_norm_epe']:.3f} ({by[c]['points']})"
+                                      for c in classes) + " |")
   return av2_rows
 
 
