@@ -195,7 +195,8 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
     labels = _clusters(pc1_BxNx3, flow, graph[:, :, :chosen.clusters.neighbours + 1],
                        chosen.clusters)
     taken, flow_to = world_flow(pc1_BxNx3, pc2_BxMx3, flow, labels,
-                                registered_world(pc1_BxNx3, pc2_BxMx3), chosen.world)
+                                registered_world(pc1_BxNx3, pc2_BxMx3), chosen.world,
+                                guarded.targets())
     flow = guarded(np.where(taken, 0, -1), flow_to, flow)
     clock("world", flow)
   return flow, info
@@ -214,15 +215,18 @@ def registered_world(pc1_BxNx3, pc2_BxMx3) -> np.ndarray:
   return np.stack(out)
 
 
-def world_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, labels_BxN, by_world_BxNx3, world: World):
+def world_flow(pc1_BxNx3, pc2_BxMx3, flow_BxNx3, labels_BxN, by_world_BxNx3, world: World,
+               targets=None):
   """Per pair, the points given the world's motion (B x N) and the flow with it (World).
   `labels_BxN`: the clusters of the flow (jaxflow.refine.rigid_clusters); `by_world_BxNx3`: the
-  world's flow (registered_world)."""
+  world's flow (registered_world); `targets`: each pair's registration.PlaneTarget of pc2 where
+  one is built already (the guard's), None: built here."""
   taken, out = [], []
-  for pc1, pc2, flow, by_world, label in zip(
-      *(np.asarray(a, np.float64) for a in (pc1_BxNx3, pc2_BxMx3, flow_BxNx3, by_world_BxNx3)),
-      np.asarray(labels_BxN)):
-    target = registration.PlaneTarget(pc2)
+  pc2s = np.asarray(pc2_BxMx3, np.float64)
+  targets = [registration.PlaneTarget(p) for p in pc2s] if targets is None else targets
+  for pc1, flow, by_world, label, target in zip(
+      *(np.asarray(a, np.float64) for a in (pc1_BxNx3, flow_BxNx3, by_world_BxNx3)),
+      np.asarray(labels_BxN), targets):
     costs = [target.plane_distance(pc1 + f, world.truncate) for f in (by_world, flow)]
     near = neighbours.Tree(pc1).knn(pc1, world.neighbours)
     take = ((costs[0][near].mean(1) <= costs[1][near].mean(1) + world.tie)
@@ -244,6 +248,10 @@ class Guarded:
     if self.active:
       self.rule, self.pc1 = guard.rule(), np.asarray(pc1_BxNx3, np.float64)
       self.evidence = [guard.evidence(p) for p in np.asarray(pc2_BxMx3, np.float64)]
+
+  def targets(self):
+    """Each pair's PlaneTarget of pc2 (None when unguarded: none built)."""
+    return [e.target for e in self.evidence] if self.active else None
 
   def __call__(self, labels_BxN, new_BxNx3, given_BxNx3):
     if not self.active:
