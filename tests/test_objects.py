@@ -206,3 +206,47 @@ def test_a_walking_person_gets_the_walk_and_a_standing_one_stands():
   assert np.linalg.norm(flow[walker] - truth, axis=1).mean() < 0.03
   np.testing.assert_allclose(flow[stander], ego_motion.flow(pc1[stander]), atol=1e-4)
   assert [m[3] for m in found.moved] == ["person"]
+
+
+def test_a_cars_fit_does_not_depend_on_which_other_groups_are_fitted():
+  """Each group draws from its own random stream: one more parked box, fitted first (it lies
+  first in the scan of cells) and appended to the clouds, leaves both cars' flows exactly as they
+  were."""
+  rng = np.random.default_rng(0)
+  still = (np.eye(3), np.zeros(3))
+  pc1, obj = scene(rng, [still] * 4)
+  car_a, car_b = (yaw(2.0), np.array([1.6, 0.1, 0.0])), (yaw(-3.0), np.array([-0.9, 0.6, 0.0]))
+  pc2, _ = scene(np.random.default_rng(1), [still, still, car_a, car_b])
+  ego_motion = rigid.Motion(yaw(1.0), np.array([0.8, 0.05, 0.0]))
+  size = np.array([4.5, 1.8, 1.5])
+  extra = [box_surface(np.random.default_rng(k), (-15, 0, 0), size, 800) for k in (2, 3)]
+  runs = []
+  for a, b in ((pc1, pc2), (np.r_[pc1, extra[0]], np.r_[pc2, extra[1]])):
+    b = ego_motion.apply(b)
+    runs.append(objects.object_flow(a, b, np.zeros(len(a), bool), np.zeros(len(b), bool),
+                                    ego_motion))
+  assert runs[1][1].candidates > runs[0][1].candidates  # the box is fitted (and its parts)
+  cars = (obj == 2) | (obj == 3)
+  np.testing.assert_array_equal(runs[0][0][:len(pc1)][cars], runs[1][0][:len(pc1)][cars])
+
+
+def test_a_slow_car_that_leaves_nothing_unexplained_is_moved():
+  """No speed gate: a car seen from behind and beside (no roof), creeping 0.06-0.14 m a frame and
+  seen by the same beams in pc2 (1 cm of range noise), moves less than the ego-motion's 0.15 m
+  residual at every point, yet pc2 shows its rear face moved: it gets its motion, and the wall and
+  the parked car keep theirs (standing still). Gated by the unexplained share, as before, it stood
+  still at every speed here."""
+  size, faces = np.array([4.5, 1.8, 1.5]), ["-y", "-x"]
+  still = rigid.Motion(np.eye(3), np.zeros(3))
+  for speed, seed in ((0.06, 0), (0.1, 1), (0.14, 2)):
+    rng = np.random.default_rng(seed)
+    wall = np.c_[rng.uniform(-20, 20, 3000), np.full(3000, 12.0), rng.uniform(0, 4, 3000)]
+    parked = _visible_faces(rng, (-6.0, 4.0), size, 600, faces)
+    car = _visible_faces(rng, (5.0, 4.0), size, 600, faces)
+    pc1 = np.concatenate([wall, parked, car])
+    pc2 = np.concatenate([wall, parked, car + [speed, 0.0, 0.0]])
+    pc2 = pc2 + rng.normal(0.0, 0.01, pc2.shape)
+    flow, _ = objects.object_flow(pc1, pc2, np.zeros(len(pc1), bool), np.zeros(len(pc2), bool),
+                                  still)
+    assert np.linalg.norm(flow[-600:] - [speed, 0.0, 0.0], axis=1).mean() < 0.01, speed
+    np.testing.assert_array_equal(flow[:-600], 0.0)

@@ -132,12 +132,6 @@ def group_vote(idx, pc1_Nx3, points_Mx3, seen: Before, reach: float, settings) -
   return Vote(axis, *found)
 
 
-def moved(found: Vote | None, settings) -> bool:
-  """Whether a vote moves its object farther than a point must move to be unexplained
-  (`unexplained`): a candidate, however few of its points are."""
-  return found is not None and abs(found.shift) > settings.unexplained
-
-
 def shift_of(motion: rigid.Motion, points_Kx3, found: Vote) -> float:
   """How far `motion` moves the points' centre along the vote's axis (m)."""
   centre = points_Kx3.mean(0)

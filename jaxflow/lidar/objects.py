@@ -4,10 +4,10 @@
 
 With the sensor's motion known (jaxflow.lidar.ego), pc2 is brought into pc1's frame: the static
 world then overlaps itself and every moving thing does not. The non-ground points below `object_top`
-above the ground are grouped into objects by connectivity seen from above (cells of `cell`); each
-object with enough unexplained points (a share of its points, or a count) gets motions from
-several starts (standing still, the caller's flow, e.g. the network's, fitted rigidly, and the best
-translation of a search over +-`search.per_s` / `frame_rate_hz` m), each refined by a bird's-eye
+above the ground are grouped into objects by connectivity seen from above (cells of `cell`); every
+object but structure, at any speed, gets motions from several starts (standing still, the
+caller's flow, e.g. the network's, fitted rigidly, and the best translation of a search over
++-`search.per_s` / `frame_rate_hz` m: jaxflow.lidar.grid_search), each refined by a bird's-eye
 ICP (yaw and translation, point-to-line: jaxflow.geometry.registration; its height follows the
 ground), and keeps the motion that fits pc2 best, standing still unless another fits clearly
 better (jaxflow.lidar.judge); a kept motion is refitted on all the object's points. A walking
@@ -17,7 +17,8 @@ beats standing still by the same rule. A long object sliding along its flat side
 beside the sensor) leaves few points unexplained and a cost flat along its length: its ends vote
 for its shift along its axis (jaxflow.lidar.along), a candidate's start unless the costs clearly
 refute it, kept along a flat side (an end face seen refines it). An object moved farther than
-its own width must land where pc1 saw nothing. A group kept still may join a mover to what
+its own width must leave a place pc2 shows empty and land where pc1 saw nothing (each start and
+each of the search's best shifts is held to it). A group kept still may join a mover to what
 stands beside it (a car passing parked cars): the connected cells of its unexplained points are
 fitted in turn, each kept only where it leaves a place pc2 shows empty for one pc1 showed empty.
 What pc2 saw is judged from its sensor's place (`sensor2`). Points no object claims keep the
@@ -29,7 +30,7 @@ import dataclasses
 import numpy as np
 
 from jaxflow.geometry import groups, neighbours, registration, rigid, visibility as views
-from jaxflow.lidar import along, ego, judge
+from jaxflow.lidar import along, ego, grid_search, judge
 from jaxflow.lidar.settings import DEFAULTS
 
 
@@ -64,21 +65,6 @@ def _bev_icp(target: ego.Target, points_Kx3, start: rigid.Motion, settings) -> r
   scales = [settings.icp.scales[min(i // 4, last)] for i in range(settings.icp.rounds)]
   return registration.robust_fit(points_Kx3, start, rows_of, scales, dof="yaw_xy",
                                  about_centroid=True, damping=1e-3, converged=1e-5)
-
-
-def _search(tree, points_Kx3, search: float, settings) -> rigid.Motion:
-  """The best horizontal translation within +-`search` m (3-D cost; coarse, then fine)."""
-  best = np.zeros(3)
-  truncate, coarse = settings.judge.truncate, settings.search.coarse_step
-  for half, step in ((search, coarse), (coarse, settings.search.step / 2)):
-    steps = np.arange(-half, half + 1e-9, step)
-    dx, dy = np.meshgrid(steps, steps, indexing="ij")
-    shifts = best + np.c_[dx.ravel(), dy.ravel(), np.zeros(dx.size)]
-    d, _ = tree.nearest((points_Kx3[None] + shifts[:, None]).reshape(-1, 3), truncate)
-    cost = np.minimum(d, truncate).reshape(len(shifts), -1).mean(1)
-    cost += 1e-4 * np.linalg.norm(shifts, axis=1)  # ties: the smaller move
-    best = shifts[int(np.argmin(cost))]
-  return rigid.Motion(np.eye(3), best)
 
 
 def _moving_parts(scene, points_Kx3, motion, truncate) -> np.ndarray:
@@ -168,12 +154,6 @@ def _is_structure(idx, height_N, pc1_Nx3, s) -> bool:
           or (height_N[idx] > s.object_top).mean() > s.max_high)
 
 
-def _is_candidate(idx, unexplained_N, s) -> bool:
-  """Whether enough of a group's points are unexplained to fit it (else its ends may: along)."""
-  return (unexplained_N[idx].mean() >= s.min_unexplained
-          or unexplained_N[idx].sum() >= s.many_unexplained)
-
-
 def _novelty(scene, pts_Kx3, motion, truncate) -> float:
   """Share of pc2's points that an object moved by `motion` lands on (within `truncate`) which
   pc1 does not explain where they are: a mover lands where it was not; a piece of still structure
@@ -197,14 +177,17 @@ def _new_place(scene, pts_Kx3, fit) -> bool:
 
 def _onto_what_stood(scene, pts_Kx3, fit) -> bool:
   """Whether a motion takes an object farther than its own width onto what pc1 saw there too
-  (under `novelty` of the pc2 points it lands on new): a thing slid onto its neighbours. A mover
-  that far has left its own place, so where it lands pc1 saw nothing."""
+  (under `novelty` of the pc2 points it lands on new), or from a place pc2 still shows filled
+  (standing still's mean cost under `part.vacated`): a thing slid onto its neighbours. A mover
+  that far has left its own place, so pc2 sees it empty, and where it lands pc1 saw nothing."""
   _, motion, truncate = fit
   centre = pts_Kx3.mean(0)
   shift = np.linalg.norm(motion.apply(centre[None])[0, :2] - centre[:2])
   if shift <= np.ptp(pts_Kx3[:, :2], axis=0).max():
     return False
-  return _novelty(scene, pts_Kx3, motion, truncate) < scene.settings.novelty
+  s = scene.settings
+  return (judge.mean(scene.costs(pts_Kx3, truncate), s.judge.min_seen) < s.part.vacated
+          or _novelty(scene, pts_Kx3, motion, truncate) < s.novelty)
 
 
 def _unexplained_parts(idx, unexplained_N, pc1_Nx3, s):
@@ -228,15 +211,18 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   s = scene.settings
   shuffled = pts_Kx3[rng.permutation(len(pts_Kx3))]
   sample, judged = shuffled[0::2][:s.search.points], shuffled[1::2]
-  starts = {"search": _search(scene.tree, sample, scene.search, s)}
+  truncate = judge.truncation(pts_Kx3, judged, s)
+  allowed = lambda m: scene.plausible(m, judged) and not _onto_what_stood(
+    scene, judged, (None, m, truncate))
+  shifts = grid_search.best_shifts(scene.tree, sample, scene.search, s)
+  starts = {"search": next((m for m in shifts if allowed(m)), shifts[0])}  # the best allowed
   if given_Kx3 is not None:
     starts["network"] = rigid.kabsch(pts_Kx3, given_Kx3)
-  truncate = judge.truncation(pts_Kx3, judged, s)
   still_costs = scene.costs(judged, truncate)
   best = "still", rigid.Motion(np.eye(3), np.zeros(3)), still_costs
   for name, start in starts.items():
     for m in (start, _bev_icp(scene.target, sample, start, s)):
-      if not scene.plausible(m, judged):
+      if not allowed(m):
         continue
       c = scene.costs(m.apply(judged), truncate)
       if judge.mean(c, s.judge.min_seen) < judge.mean(best[2], s.judge.min_seen):
@@ -247,12 +233,16 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   best_name, best, best_costs = best
   if best_name == "still" or not judge.clearly_better(still_costs, best_costs, s):
     return None
+  if best_name == "search" and not grid_search.halves_agree(scene.tree, judged, best,
+                                                               scene.search, s):
+    return None
   refit = _bev_icp(scene.target, pts_Kx3, best, s)  # chosen on halves: now fitted on all points
   if best_name.endswith("along"):  # a flat side: the refit slides along it, the ends say where
     refit = along.settle(scene.target, pts_Kx3, refit, vote, s)
-  if judge.mean(scene.costs(refit.apply(pts_Kx3), truncate), s.judge.min_seen) <= judge.mean(
+  if scene.plausible(refit, pts_Kx3) and judge.mean(
+      scene.costs(refit.apply(pts_Kx3), truncate), s.judge.min_seen) <= judge.mean(
       scene.costs(best.apply(pts_Kx3), truncate), s.judge.min_seen):
-    best = refit
+    best = refit  # (a refit that ran off as far as no object goes in a frame is not)
   return best_name, best, truncate
 
 
@@ -315,26 +305,25 @@ class _Pass:
   unexplained: np.ndarray  # bool N: ego-compensated pc2 does not explain the point (from above)
   given: np.ndarray | None  # N x 3: where the caller's flow takes each point (frame 1)
   surface: object  # jaxflow.lidar.ground.Surface, or None
-  rngs: tuple  # (candidates by their points, by their ends alone): the first's draws as before
+  seed: int  # each group's draws: its own stream (seed, its first point), whoever else is fitted
   flow: np.ndarray  # N x 3: the ego-motion's, each moved object's written over it
   moved: list = dataclasses.field(default_factory=list)  # Found.moved
   candidates: int = 0
 
   def fit(self, idx):
     """A group's fit (start name, motion, truncation), or None: a person's shift, or an object's
-    motion where it is worth fitting (counted a candidate)."""
+    motion, every group but structure a candidate (counted) at every speed: what moves is what
+    pc2 shows moved (_fit_object's judgement), not what the ego-motion leaves unexplained, which a
+    car creeping under 0.15 m a frame leaves nothing of."""
     scene, s, pc1 = self.scene, self.scene.settings, self.pc1
     fit = _fit_person(scene, pc1[idx]) if _is_person(idx, pc1, self.height, s) else None
     if fit is None:
       if _is_structure(idx, self.height, pc1, s):
         return None
       vote = along.group_vote(idx, pc1, scene.tree.points, scene.before, scene.search, s)
-      by_points = _is_candidate(idx, self.unexplained, s)
-      if not (by_points or along.moved(vote, s)):
-        return None
       usable = self.given is not None and np.isfinite(self.given[idx]).all()
       fit = _fit_object(scene, pc1[idx], self.given[idx] if usable else None,
-                        self.rngs[0 if by_points else 1], vote)
+                        np.random.default_rng([self.seed, int(idx.min())]), vote)
     self.candidates += 1
     return fit
 
@@ -380,7 +369,7 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   given = None if start_flow_Nx3 is None else ego_motion.inverse().apply(
     pc1 + np.asarray(start_flow_Nx3, np.float64))
   run = _Pass(scene, pc1, ground1, height, _per_point(scene.target, pc1) > s.unexplained, given,
-              surface, (np.random.default_rng(seed), np.random.default_rng([seed, 1])), flow)
+              surface, seed, flow)
   still = []
   for _, idx in found.members():
     fit = run.fit(idx)

@@ -212,11 +212,14 @@ class Search:
   step: float = 0.25  # m: the translation search's fine step (twice that first)
   coarse_step: float = 0.5  # m: its coarse step (the fine one searches +- this)
   points: int = 150  # points at most a motion is searched on (half judge it)
+  keep: int = 3  # coarse shifts whose neighbourhoods the fine step searches
+  agree: float = 0.3  # m: the judged half's own search finds the searched half's shift this near
   slack: float = 0.5  # m: a refined motion may reach this beyond the search
 
   def __post_init__(self):
-    _need(self, "lidar objects.search.", _NUMBER, "per_s", "step", "coarse_step", "slack")
-    _need(self, "lidar objects.search.", _COUNT, "points")
+    _need(self, "lidar objects.search.", _NUMBER, "per_s", "step", "coarse_step", "slack",
+          "agree")
+    _need(self, "lidar objects.search.", _COUNT, "points", "keep")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -314,11 +317,9 @@ class Objects:
   novelty: float = 0.7
   max_high: float = 0.25  # share above object_top beyond which a group is structure
   max_size: float = 14.0  # m: a larger group is structure (a facade), never moved
-  unexplained: float = 0.15  # m from ego-compensated pc2 (from above): unexplained
-  min_unexplained: float = 0.15  # share of unexplained points below which it stands still
-  # ... unless it has this many: a car beside the sensor, sliding along its own side, is explained
-  # but at its ends.
-  many_unexplained: int = 100  # unexplained points that make any object a candidate
+  # m from ego-compensated pc2 (from above): unexplained (a group's parts fitted on their own are
+  # its unexplained points; a long object's ends vote on what pc1 does not explain)
+  unexplained: float = 0.15
   max_yaw_deg_per_s: float = 100.0  # deg/s: an object turning faster is refused
   low_ground: float = 0.05  # m: "ground" this high in a moving object's cells moves too
   judge: Judge = Judge()
@@ -330,8 +331,8 @@ class Objects:
 
   def __post_init__(self):
     _need(self, "lidar objects.", _NUMBER, "cell", "object_top", "novelty", "max_high",
-          "max_size", "unexplained", "min_unexplained", "max_yaw_deg_per_s", "low_ground")
-    _need(self, "lidar objects.", _COUNT, "min_points", "many_unexplained")
+          "max_size", "unexplained", "max_yaw_deg_per_s", "low_ground")
+    _need(self, "lidar objects.", _COUNT, "min_points")
     for name, cls in (("judge", Judge), ("part", Part), ("search", Search), ("icp", Icp),
                       ("person", Person), ("along", Along)):
       _need(self, "lidar objects.", _block(cls), name)
