@@ -19,7 +19,7 @@ Both directions: with `--directions forward,backward` (the default) the default 
 each pair taken backwards too (pc1 the later sweep: `synthetic_sweep`'s reverse option), its rows
 named "..., backward". Then the official readings of the same flows (jaxflow.evaluation.av2_eval,
 equal to av2's evaluator): the av2 breakdown count-weighted over the split (EPE 3-Way Average) and
-the 2024 bucketed normalised EPE, overall and by class.
+the 2024 bucketed normalised EPE, overall, by class, and by class and speed band.
 """
 
 import argparse
@@ -179,7 +179,24 @@ def official_table(per, official):
     by = rows["bucketed"]["classes"]
     print(f"| {name} | " + " | ".join(f"{by[c]['dynamic_norm_epe']:.3f} ({by[c]['points']})"
                                       for c in classes) + " |")
+  speed_table(official, av2_rows, classes)
   return av2_rows
+
+
+def speed_table(official, av2_rows, classes):
+  """Prints each row's movers by class and speed band (av2_eval.bucketed_by_speed), stored in
+  av2_rows[row]["speeds"]."""
+  bands = [f"{lo:g}-{hi:g}" for lo, hi in zip(av2_eval.SPEED_BANDS, av2_eval.SPEED_BANDS[1:])]
+  print("\nmovers by class and speed (m a frame): normalised EPE / EPE m (points)\n| method | "
+        "class | " + " | ".join(bands) + " |\n" + "|---" * (len(bands) + 2) + "|")
+  for name in av2_rows:
+    by = av2_eval.bucketed_by_speed(official[name][1])
+    av2_rows[name]["speeds"] = {c: by[c] for c in classes}
+    for c in classes:
+      if any(b["points"] for b in by[c]):
+        print(f"| {name} | {c} | " + " | ".join(
+          f"{b['dynamic_norm_epe']:.3f} / {b['epe']:.3f} ({b['points']})" if b["points"] else "-"
+          for b in by[c]) + " |")
 
 
 def kitti_frame():

@@ -231,3 +231,21 @@ def test_bucketed_equals_bucketed_scene_flow_evals_own_code(monkeypatch):
   mean = matrix.get_mean_average_values()
   assert same(got["static_epe"], float(mean.static_epe))
   assert same(got["dynamic_norm_epe"], float(mean.dynamic_error))
+
+
+def test_speed_bands_are_the_buckets_merged_as_the_metric_takes_them():
+  """Cars at speeds 0.10 and 0.20 (two buckets of the slowest band), 0.5, 1.5 and 2.5 m a frame,
+  each with a known error: a band's EPE is its points' mean, its normalised EPE the mean over its
+  buckets of EPE / speed (closed form)."""
+  speeds = np.array([0.10, 0.20, 0.5, 1.5, 2.5])
+  errors = np.array([0.05, 0.10, 0.05, 0.05, 0.05])
+  gt = np.c_[speeds, np.zeros((5, 2))]
+  pred = gt + np.c_[np.zeros(5), errors, np.zeros(5)]
+  sums = av2_eval.bucketed_sums(pred, gt, np.zeros_like(gt), np.full(5, 19), np.zeros((5, 2)),
+                                np.ones(5, bool))
+  car = av2_eval.bucketed_by_speed(sums)["CAR"]
+  assert [b["speeds"] for b in car] == [(0.04, 0.32), (0.32, 1.0), (1.0, 2.0), (2.0, np.inf)]
+  assert [b["points"] for b in car] == [2, 1, 1, 1]
+  np.testing.assert_allclose([b["epe"] for b in car], [0.075, 0.05, 0.05, 0.05])
+  np.testing.assert_allclose([b["dynamic_norm_epe"] for b in car], [0.5, 0.1, 0.05 / 1.5, 0.02])
+  assert math.isnan(av2_eval.bucketed_by_speed(sums)["PEDESTRIAN"][0]["epe"])

@@ -14,8 +14,8 @@ import math
 import numpy as np
 
 from jaxflow.data import synthetic as syn
-from jaxflow.data.synthetic_sweep import (BACKGROUND, REGULAR_VEHICLE, Options, Street, SweepPair,
-                                          cast_pair)
+from jaxflow.data.street import BACKGROUND, REGULAR_VEHICLE, Street
+from jaxflow.data.synthetic_sweep import Options, SweepPair, cast_pair
 
 
 def scene(rng, lateral: float = 5.0, speed: float = 0.8, ego_speed: float = 0.3,

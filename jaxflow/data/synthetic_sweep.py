@@ -9,7 +9,11 @@ Unlike `synthetic_lidar` (the KITTI loader's cut: no ground, 35 m, the camera's 
 these pairs are what a raw sweep is: z up (x forward, y left), the full azimuth, 32, 64 or 128
 beams from -25 to +15 degrees, ranges to 100 m, the ground KEPT (a crowned road with raised
 sidewalks and, in some scenes, a slope that starts ahead or behind), the ego car moving 0-3 m a
-frame with a yaw rate, parked and moving cars, pedestrians, cyclists, buildings, poles and trees.
+frame with a yaw rate, buildings, poles, trees, parked cars and what moves at the world's speeds:
+cars at every speed from 0.05 to 3 m a frame (log-uniform, so creeping, stopping and queueing cars
+are as common as fast ones; a dense city's to 1.5 and more slow ones), often one passing beside
+the sensor, pedestrians walking 0.06-0.18 m a frame (on the sidewalks, and 10-25 m away crossing
+the road or walking along it) and cyclists.
 The two sweeps are ray-cast independently from the sensor's two poses (their own azimuth phase and
 range noise): no point of pc2 is a moved pc1 point, as in real sweeps.
 
@@ -30,7 +34,10 @@ import math
 
 import numpy as np
 
-from jaxflow.data import synthetic as syn
+from jaxflow.data import street as streets, synthetic as syn
+# (the av2 categories of the labels, for the callers: ss.PEDESTRIAN)
+from jaxflow.data.street import (BACKGROUND, BICYCLIST, PEDESTRIAN,  # noqa: F401
+                                 REGULAR_VEHICLE, Street)
 from jaxflow.data.registry import Dataset, Pair, register
 from jaxflow.errors import DataError
 from jaxflow.geometry import frames
@@ -44,7 +51,6 @@ RAYS = 120_000  # rays a sweep at scale 1 (about 80-100k returns)
 MAX_RANGE = 100.0
 RANGE_NOISE = 0.01  # metres, one sigma along the ray
 EVAL_BOX = 50.0  # |x|, |y| <= this: the AV2 challenge's evaluated points
-BACKGROUND, BICYCLIST, PEDESTRIAN, REGULAR_VEHICLE = 0, 4, 17, 19  # av2 CATEGORY_TO_INDEX
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,63 +115,6 @@ def _grid(rng, beams: int, columns: int, offset_deg: float = 0.0) -> syn.Grid:
   return syn.Grid(dirs, el, el, az - step / 2, az + step / 2, pinhole=False)
 
 
-class Street:
-  """The ground's height field (caster frame: x across the road, z along it) and its planes."""
-
-  def __init__(self, rng, sensor_height: float, dense: bool = False):
-    self.g = -sensor_height
-    # half width: parking, a cycle lane, two lanes, the ego's (a dense city: two lanes, parking)
-    self.road = rng.uniform(9.0, 12.0) if not dense else rng.uniform(4.5, 5.5)
-    self.crown = rng.uniform(0.0, 0.15)  # road centre above its edges
-    self.kerb = rng.uniform(0.08, 0.18)
-    hill = rng.random()
-    self.ahead = (rng.uniform(8, 30), rng.uniform(-0.07, 0.07)) if hill < 0.4 else None
-    self.behind = (rng.uniform(-30, -8), rng.uniform(-0.07, 0.07)) if 0.25 < hill < 0.55 else None
-
-  def along(self, z):
-    """Height of the road's edge line at z (the slope part)."""
-    h = self.g
-    if self.ahead and z > self.ahead[0]:
-      h += (z - self.ahead[0]) * self.ahead[1]
-    if self.behind and z < self.behind[0]:
-      h += (z - self.behind[0]) * self.behind[1]
-    return h
-
-  def height(self, x, z):
-    across = self.crown * max(0.0, 1 - abs(x) / self.road) if abs(x) < self.road else self.kerb
-    return self.along(z) + across
-
-  def planes(self):
-    """[(kind, rot, pos, size)] of the ground: road halves (crowned planes) and sidewalks (slabs)
-    per segment of the slope."""
-    cuts = [-110.0] + ([self.behind[0]] if self.behind else []) + (
-      [self.ahead[0]] if self.ahead else []) + [110.0]
-    out = []
-    for z0, z1 in zip(cuts[:-1], cuts[1:]):
-      zc = (z0 + z1) / 2
-      grade = (self.along(z1) - self.along(z0)) / (z1 - z0)
-      pitch = syn.rotation((1, 0, 0), -math.atan(grade))
-      half_z = (z1 - z0) / 2 * math.sqrt(1 + grade * grade)
-      for side in (-1, 1):
-        roll = syn.rotation((0, 0, 1), -side * math.atan(self.crown / self.road))
-        pos = (side * self.road / 2, self.along(zc) + self.crown / 2, zc)
-        out.append((syn.PLANE, pitch @ roll, pos, (self.road / 2, 0, half_z)))
-        walk, depth = 55.0, 0.6  # a slab: its top is the sidewalk, its side the kerb
-        pos = (side * (self.road + walk), self.along(zc) + self.kerb - depth / 2, zc)
-        out.append((syn.BOX, pitch, pos, (walk, depth / 2, half_z)))
-    return out
-
-
-def _person(rng):
-  return [(syn.CYLINDER, syn.IDENTITY, (0, 0.8, 0), (rng.uniform(0.18, 0.26), 0.8, 0), None),
-          (syn.ELLIPSOID, syn.IDENTITY, (0, 1.8, 0), (0.13,) * 3, None)]
-
-
-def _cyclist(rng):
-  return [(syn.BOX, syn.IDENTITY, (0, 0.45, 0), (0.08, 0.35, 0.85), None),
-          (syn.CYLINDER, syn.IDENTITY, (0, 1.25, 0), (0.2, 0.45, 0), None)]
-
-
 def _sensor_motion(rng, opt: Options):
   """(rotation, position) of the sensor in frame 2: 0-3 m a frame forward (or opt.speed's), a yaw
   rate, a little pitch and roll when moving."""
@@ -179,115 +128,25 @@ def _sensor_motion(rng, opt: Options):
           (math.sin(yaw / 2) * speed, 0.0, math.cos(yaw / 2) * speed))
 
 
-class _Labelled:
-  """A scene's builder and the labels of its primitives, as build_scene adds them."""
-
-  def __init__(self, builder: syn.Builder):
-    self.builder, self.cats, self.insts, self.grounds = builder, [], [], []
-
-  def add(self, parts, rot, pos, cat=BACKGROUND, motion_rot=None, motion_pos=None,
-          is_ground=False):
-    """One object (its primitives share its label; an instance number unless background)."""
-    inst = len(set(self.insts)) + 1 if cat != BACKGROUND else 0
-    self.builder.add(parts, rot, pos, motion_rot, motion_pos)
-    self.cats.extend([cat] * len(parts))
-    self.insts.extend([inst] * len(parts))
-    self.grounds.extend([is_ground] * len(parts))
-
-  def built(self, sensor_height: float):
-    """build_scene's tuple."""
-    return (self.builder.scene(), np.array(self.cats, np.uint8), np.array(self.insts, np.int16),
-            np.array(self.grounds), sensor_height)
-
-
-def _facades(rng, scene: _Labelled, street: Street, side: int, dense: bool):
-  """A row of buildings along one side, with gaps (a dense city: at the sidewalk, tall)."""
-  road = street.road
-  z = rng.uniform(-100, -80)
-  while z < 100:
-    length = rng.uniform(6, 30)
-    if rng.random() < 0.75 or dense:
-      x = side * (road + (rng.uniform(3, 9) if not dense else rng.uniform(1.0, 2.0)))
-      height = rng.uniform(3, 18) if not dense else rng.uniform(12, 30)
-      base = street.height(x, z + length / 2) - 2
-      scene.add([(syn.BOX, syn.IDENTITY, syn.ZERO, (4, height / 2 + 1, length / 2), None)],
-                syn.rotation((0, 1, 0), rng.uniform(-0.06, 0.06)),
-                (x + side * 4, base + height / 2 + 1, z + length / 2))
-    z += length + (rng.uniform(0, 8) if not dense else rng.uniform(0, 1))
-
-
-def _roadside(rng, scene: _Labelled, street: Street, side: int, dense: bool):
-  """Poles and trees on one sidewalk, and the cars parked along it."""
-  road = street.road
-  for _ in range(rng.integers(3, 10)):
-    x, z, h = side * (road + rng.uniform(0.4, 2.0)), rng.uniform(-60, 60), rng.uniform(3, 8)
-    parts = [(syn.CYLINDER, syn.IDENTITY, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
-    if rng.random() < 0.5:
-      crown = rng.uniform(1.0, 2.5)
-      parts.append((syn.ELLIPSOID, syn.IDENTITY, (0, h + crown * 0.6, 0), (crown, crown * 0.8, crown),
-                    syn.random_bump(rng, 0.12)))
-    scene.add(parts, syn.IDENTITY, (x, street.height(x, z) - 0.05, z))
-  for _ in range(rng.integers(1, 7) if not dense else rng.integers(6, 12)):
-    x, z = side * (road - 1.1), rng.uniform(-50, 50)
-    heading = rng.uniform(-0.08, 0.08) + (side < 0) * math.pi
-    scene.add(syn.car_parts(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
-              REGULAR_VEHICLE)
-
-
-def _vulnerable(rng, scene: _Labelled, street: Street, side: int):
-  """Pedestrians on one sidewalk (most walking) and perhaps a cyclist near its kerb, riding with
-  the traffic of its side."""
-  road = street.road
-  for _ in range(rng.integers(0, 4)):
-    x, z = side * (road + rng.uniform(0.6, 2.5)), rng.uniform(-30, 30)
-    walking = rng.random() < 0.7
-    scene.add(_person(rng), syn.IDENTITY, (x, street.height(x, z), z), PEDESTRIAN,
-              syn.rotation((0, 1, 0), rng.uniform(-0.1, 0.1)) if walking else None,
-              (rng.uniform(-0.05, 0.05), 0, rng.uniform(-0.18, 0.18)) if walking else None)
-  if rng.random() < 0.5:
-    x, z = side * (road - 3.2), rng.uniform(-30, 30)
-    heading = 0.0 if side < 0 else math.pi
-    v = rng.uniform(0.3, 0.8)
-    scene.add(_cyclist(rng), syn.rotation((0, 1, 0), heading), (x, street.height(x, z), z),
-              BICYCLIST, syn.IDENTITY, (0, 0, v * math.cos(heading)))
-
-
-def _traffic(rng, scene: _Labelled, street: Street, dense: bool):
-  """Cars in the two lanes (+z on the left, -z on the right), a quarter of them stopped."""
-  road = street.road
-  inner = 0.8 if not dense else 1.3  # lane centre from the parking strip (dense: 0.6-1.1 m
-  # between a passing car and a parked one)
-  for lane in (inner - road / 2, road / 2 - inner):
-    heading = 0.0 if lane < 0 else math.pi
-    z = rng.uniform(-60, -40)
-    while z < 60:
-      if abs(z) > 6 or lane > 2.2:  # the ego car drives at x = 0 (2 m wide): no car on it
-        v = 0.0 if rng.random() < 0.25 else rng.uniform(0.3, 3.0)
-        turn = np.deg2rad(rng.uniform(-2, 2)) * (v > 0)
-        d = np.array([math.sin(heading + turn / 2), 0, math.cos(heading + turn / 2)])
-        x = lane + rng.uniform(-0.2, 0.2)
-        scene.add(syn.car_parts(rng), syn.rotation((0, 1, 0), heading + rng.uniform(-0.04, 0.04)),
-                  (x, street.height(x, z), z), REGULAR_VEHICLE,
-                  syn.rotation((0, 1, 0), turn) if v else None, v * d if v else None)
-      z += rng.uniform(10, 30)
-
-
 def build_scene(rng, opt: Options = Options()):
   """(Scene in the caster's frame, category per primitive, instance per primitive, ground prims,
   the sensor's height above the road)."""
-  # The draws' order is the scenes' identity: (split, index) pairs stay the same scenes.
-  scene = _Labelled(syn.Builder(*_sensor_motion(rng, opt)))
+  # The draws' order is the scenes' identity: (split, index) pairs stay the same scenes. The
+  # movers added last draw from their own stream (spawned: `rng`'s draws are not moved by them).
+  more = rng.spawn(1)[0]
+  scene = streets.Labelled(syn.Builder(*_sensor_motion(rng, opt)))
   street = Street(rng, rng.uniform(1.7, 2.1), opt.dense)
   if opt.ground:
     for kind, rot, pos, size in street.planes():
       scene.add([(kind, syn.IDENTITY, syn.ZERO, size, None)], rot, pos, is_ground=True)
   for side in (-1, 1):
-    _facades(rng, scene, street, side, opt.dense)
-    _roadside(rng, scene, street, side, opt.dense)
+    streets.facades(rng, scene, street, side, opt.dense)
+    streets.roadside(rng, scene, street, side, opt.dense)
     if opt.movers:
-      _vulnerable(rng, scene, street, side)
+      streets.vulnerable(rng, scene, street, side, opt.dense)
   if opt.movers:
-    _traffic(rng, scene, street, opt.dense)
+    streets.traffic(rng, scene, street, opt.dense)
+    streets.more_movers(more, scene, street, opt.dense)
   return scene.built(-street.g)
 
 

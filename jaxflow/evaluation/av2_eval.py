@@ -168,6 +168,29 @@ def bucketed_results(sums: np.ndarray) -> dict:
           "dynamic_norm_epe": nanmean("dynamic_norm_epe")}
 
 
+SPEED_BANDS = (0.04, 0.32, 1.0, 2.0, np.inf)  # m a frame: bands of whole buckets, slowest first
+
+
+def bucketed_by_speed(sums: np.ndarray, bands=SPEED_BANDS) -> dict:
+  """{meta-class: [{"speeds": (lo, hi), "points", "epe", "dynamic_norm_epe"}, ...]}: the summed
+  `bucketed_sums` of each class's moving points in coarser speed bands (edges on the buckets'),
+  so the slow movers the metric weighs most are seen apart: a band's mean EPE, and its normalised
+  EPE as the metric takes it (the mean over its non-empty buckets of mean EPE / mean speed; NaN
+  where the band is empty)."""
+  out = {}
+  for row, name in enumerate(META_CLASSES):
+    out[name] = []
+    for lo, hi in zip(bands[:-1], bands[1:]):
+      inside = (BUCKET_EDGES[:-1] >= lo - 1e-9) & (BUCKET_EDGES[:-1] < hi - 1e-9)
+      count, err, speed = sums[row, inside].T
+      full = count > 0
+      out[name].append({
+        "speeds": (float(lo), float(hi)), "points": int(count.sum()),
+        "epe": float(err.sum() / count.sum()) if full.any() else float("nan"),
+        "dynamic_norm_epe": float(np.mean(err[full] / speed[full])) if full.any() else float("nan")})
+  return out
+
+
 class Official:
   """Both official readings over the pairs of evaluation batches: `add(pred, batch)` per batch (a
   batch without av2 labels, 'category' and 'ego_xy', is ignored), `reduce(sum_fn)` in a run over
@@ -211,7 +234,8 @@ class Official:
       return {}
     av2 = {**breakdown_results(self.breakdown), "pairs": self.pairs,
            "points": int(self.breakdown[:, 0].sum())}
-    return {"av2": av2, "bucketed": {**bucketed_results(self.buckets), "pairs": self.pairs}}
+    return {"av2": av2, "bucketed": {**bucketed_results(self.buckets), "pairs": self.pairs,
+                                     "speeds": bucketed_by_speed(self.buckets)}}
 
 
 def challenge_points(dataset) -> bool:
@@ -221,8 +245,8 @@ def challenge_points(dataset) -> bool:
 
 
 def format_results(results: dict, dataset=None) -> str:
-  """The av2 breakdown (count-weighted over the split) and the bucketed EPE of `results`
-  (Official.results()) as two tables; a last line says when `dataset` is not read on the
+  """The av2 breakdown (count-weighted over the split), the bucketed EPE of `results`
+  (Official.results()) and its movers by class and speed band as tables; a last line says when `dataset` is not read on the
   challenge's points (opensf without region=challenge)."""
   from jaxflow.evaluation import tables  # pylint: disable=import-outside-toplevel
 
@@ -241,6 +265,15 @@ def format_results(results: dict, dataset=None) -> str:
   brows.append(("mean", f"{b['static_epe']:.4f}", f"{b['dynamic_norm_epe']:.4f}", ""))
   bhead = ("bucketed 2024 (35 m box)", "static EPE", "dynamic normalised EPE", "points")
   text = tables.markdown_table(head, rows) + "\n" + tables.markdown_table(bhead, brows)
+  if "speeds" in b:  # the movers by speed band: what a class's dynamic figure is made of
+    bands = SPEED_BANDS
+    shead = ("movers by speed (m a frame)",
+             *(f"{lo:g}-{hi:g}: norm. EPE (points)" for lo, hi in zip(bands, bands[1:])))
+    srows = [(k, *(f"{c['dynamic_norm_epe']:.3f} ({c['points']})" if c["points"] else "-"
+                   for c in v)) for k, v in b["speeds"].items()
+             if k != "BACKGROUND" and any(c["points"] for c in v)]
+    if srows:
+      text += "\n" + tables.markdown_table(shead, srows)
   on_challenge = r.get("challenge_points", True) if dataset is None else challenge_points(dataset)
   if not on_challenge:
     text += ("\nnote: on the reader's points (ground removed, the max_range disc), not the "

@@ -13,7 +13,7 @@ ground), and keeps the motion that fits pc2 best, standing still unless another 
 better (jaxflow.lidar.judge); a kept motion is refitted on all the object's points. A walking
 person moves less a frame than `unexplained`: a group shaped as a person (narrow, upright, a
 person's height) first gets the shift of the centroid of pc2's points around it, kept when it
-beats standing still by the same rule. A long object sliding along its flat side (a car passing
+beats standing still by the same rule (jaxflow.lidar.person). A long object sliding along its flat side (a car passing
 beside the sensor) leaves few points unexplained and a cost flat along its length: its ends vote
 for its shift along its axis (jaxflow.lidar.along), a candidate's start unless the costs clearly
 refute it, kept along a flat side (an end face seen refines it). An object moved farther than
@@ -30,7 +30,7 @@ import dataclasses
 import numpy as np
 
 from jaxflow.geometry import groups, neighbours, registration, rigid, visibility as views
-from jaxflow.lidar import along, ego, grid_search, judge
+from jaxflow.lidar import along, ego, grid_search, judge, person
 from jaxflow.lidar.settings import DEFAULTS
 
 
@@ -40,6 +40,8 @@ class Found:
   objects: int
   candidates: int
   moved: list  # (points, translation 3, yaw deg, start name) of each moved object
+  # (pc1 indices, motion in frame 1 before the ego-motion) of each moved object, as `moved`
+  motions: tuple = ()
 
 
 def _per_point(target: ego.Target, moved_Kx3) -> np.ndarray:
@@ -120,33 +122,6 @@ class _Scene:
     return yaw <= self.max_yaw_deg and shift <= self.search + self.settings.search.slack
 
 
-def _is_person(idx, pc1_Nx3, height_N, s) -> bool:
-  """Whether a group is shaped as a person: narrow from above, upright, a person's height."""
-  pts = pc1_Nx3[idx]
-  return bool(len(idx) >= s.min_points
-              and np.ptp(pts[:, :2], axis=0).max() <= s.person.size
-              and s.person.top[0] <= height_N[idx].max() <= s.person.top[1]
-              and np.ptp(height_N[idx]) >= s.person.upright)
-
-
-def _person_shift(scene, pts_Kx3):
-  """A person's horizontal motion: the centroid of pc2's points (above the ground, from above
-  within `person.radius` of the moved centre and at its height) minus the group's, iterated; None
-  when too few points of pc2 are there or the shift is under `person.min_shift`."""
-  s = scene.settings
-  centre, shift = pts_Kx3.mean(0), np.zeros(3)
-  above2 = scene.tree.points
-  for _ in range(s.person.rounds):
-    d = np.linalg.norm(above2[:, :2] - (centre[:2] + shift[:2]), axis=1)
-    near = (d < s.person.radius) & (np.abs(above2[:, 2] - centre[2]) < s.person.top[1] / 2)
-    if near.sum() < max(s.person.least_matches, len(pts_Kx3) * s.person.matched_share):
-      return None
-    shift[:2] = above2[near, :2].mean(0) - centre[:2]
-  if np.linalg.norm(shift) < s.person.min_shift:
-    return None
-  return rigid.Motion(np.eye(3), shift)
-
-
 def _is_structure(idx, height_N, pc1_Nx3, s) -> bool:
   """Whether a group is too few points or structure (a facade, a tree, one column of a far wall's
   returns): never fitted."""
@@ -175,7 +150,7 @@ def _new_place(scene, pts_Kx3, fit) -> bool:
               and _novelty(scene, pts_Kx3, motion, truncate) >= s.novelty)
 
 
-def _onto_what_stood(scene, pts_Kx3, fit) -> bool:
+def onto_what_stood(scene, pts_Kx3, fit) -> bool:
   """Whether a motion takes an object farther than its own width onto what pc1 saw there too
   (under `novelty` of the pc2 points it lands on new), or from a place pc2 still shows filled
   (standing still's mean cost under `part.vacated`): a thing slid onto its neighbours. A mover
@@ -212,7 +187,7 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   shuffled = pts_Kx3[rng.permutation(len(pts_Kx3))]
   sample, judged = shuffled[0::2][:s.search.points], shuffled[1::2]
   truncate = judge.truncation(pts_Kx3, judged, s)
-  allowed = lambda m: scene.plausible(m, judged) and not _onto_what_stood(
+  allowed = lambda m: scene.plausible(m, judged) and not onto_what_stood(
     scene, judged, (None, m, truncate))
   shifts = grid_search.best_shifts(scene.tree, sample, scene.search, s)
   starts = {"search": next((m for m in shifts if allowed(m)), shifts[0])}  # the best allowed
@@ -244,20 +219,6 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
       scene.costs(best.apply(pts_Kx3), truncate), s.judge.min_seen):
     best = refit  # (a refit that ran off as far as no object goes in a frame is not)
   return best_name, best, truncate
-
-
-def _fit_person(scene, pts_Kx3):
-  """("person", shift, truncation) of a person's centroid shift (_person_shift) when it beats
-  standing still on the group's points, else None."""
-  shift = _person_shift(scene, pts_Kx3)
-  if shift is None:
-    return None
-  s = scene.settings
-  truncate = judge.truncation(pts_Kx3, pts_Kx3, s)
-  still = scene.costs(pts_Kx3, truncate)
-  if not judge.clearly_better(still, scene.costs(shift.apply(pts_Kx3), truncate), s):
-    return None
-  return "person", shift, truncate
 
 
 def _on_the_ground(motion: rigid.Motion, pts_Kx3, surface) -> rigid.Motion:
@@ -308,7 +269,9 @@ class _Pass:
   seed: int  # each group's draws: its own stream (seed, its first point), whoever else is fitted
   flow: np.ndarray  # N x 3: the ego-motion's, each moved object's written over it
   moved: list = dataclasses.field(default_factory=list)  # Found.moved
+  motions: list = dataclasses.field(default_factory=list)  # Found.motions
   candidates: int = 0
+  groups: int = 0  # the sweep's object groups
 
   def fit(self, idx):
     """A group's fit (start name, motion, truncation), or None: a person's shift, or an object's
@@ -316,7 +279,8 @@ class _Pass:
     pc2 shows moved (_fit_object's judgement), not what the ego-motion leaves unexplained, which a
     car creeping under 0.15 m a frame leaves nothing of."""
     scene, s, pc1 = self.scene, self.scene.settings, self.pc1
-    fit = _fit_person(scene, pc1[idx]) if _is_person(idx, pc1, self.height, s) else None
+    fit = (person.fit_person(scene, pc1[idx]) if person.is_person(idx, pc1, self.height, s)
+           else None)
     if fit is None:
       if _is_structure(idx, self.height, pc1, s):
         return None
@@ -326,6 +290,20 @@ class _Pass:
                         np.random.default_rng([self.seed, int(idx.min())]), vote)
     self.candidates += 1
     return fit
+
+  def found(self) -> Found:
+    return Found(self.groups, self.candidates, self.moved, tuple(self.motions))
+
+  def take_over(self, idx, fit):
+    """apply, the points `idx` first taken from the movers that hold them (their entries in
+    `moved` and `motions` keep the rest; one left with none is dropped)."""
+    kept = []
+    for (count, translation, yaw, name), (mine, motion) in zip(self.moved, self.motions):
+      mine = mine[~np.isin(mine, idx)]
+      if len(mine):
+        kept.append(((len(mine), translation, yaw, name), (mine, motion)))
+    self.moved, self.motions = [k[0] for k in kept], [k[1] for k in kept]
+    self.apply(idx, fit)
 
   def apply(self, idx, fit):
     """The flow of a fitted group's points that move with it (_moving_parts), and of its own
@@ -338,8 +316,8 @@ class _Pass:
     idx, pts = idx[parts], pts[parts]
     world = best.then(self.scene.ego_motion)
     self.flow[idx] = world.flow(pts)
-    yaw = best.yaw_deg
-    self.moved.append((len(idx), best.translation, yaw, name))
+    self.moved.append((len(idx), best.translation, best.yaw_deg, name))
+    self.motions.append((idx, best))
     if self.surface is not None:
       low = _low_ground_under(pts, self.pc1, self.ground1, self.height, self.scene.settings)
       self.flow[low] = world.flow(self.pc1[low])
@@ -355,25 +333,35 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   the ego block (pc2's bird's-eye ego.Target); `frame_rate_hz` divides the per-second limits
   (default: the config's); `sensor2`: where pc2's sensor is in its frame (jaxflow.lidar.sensor;
   default the origin), whence what pc2 saw and hid is judged."""
+  run = object_pass(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion, surface, start_flow_Nx3,
+                    seed, settings, ego_settings, frame_rate_hz, sensor2)
+  return run.flow.astype(np.float32), run.found()
+
+
+def object_pass(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion, surface=None,
+                start_flow_Nx3=None, seed: int = 0, settings=None, ego_settings=None,
+                frame_rate_hz: float | None = None, sensor2=None) -> _Pass:
+  """object_flow's work (its arguments), as the _Pass that did it: its flow (float64), what it
+  found, and the scene it judged against (None: pc2 has too few points above the ground)."""
   s = DEFAULTS.objects if settings is None else settings
   rate = DEFAULTS.frame_rate_hz if frame_rate_hz is None else frame_rate_hz
   pc1 = np.asarray(pc1_Nx3, np.float64)
   ground1 = np.asarray(ground1_N, bool)
   flow = ego_motion.flow(pc1).astype(np.float64)
   scene = _scene(pc1, pc2_Mx3, ground1, ground2_M, ego_motion, s, ego_settings, rate, sensor2)
-  if scene is None:
-    return flow.astype(np.float32), Found(0, 0, [])
   height = surface.height(pc1) if surface is not None else pc1[:, 2] - pc1[ground1, 2].mean() if (
     ground1.any()) else pc1[:, 2] - pc1[:, 2].min()
+  if scene is None:
+    return _Pass(None, pc1, ground1, height, None, None, surface, seed, flow)
   found = object_groups(pc1, np.where(ground1, -1.0, height), settings=s).without(ground1)
   given = None if start_flow_Nx3 is None else ego_motion.inverse().apply(
     pc1 + np.asarray(start_flow_Nx3, np.float64))
   run = _Pass(scene, pc1, ground1, height, _per_point(scene.target, pc1) > s.unexplained, given,
-              surface, seed, flow)
+              surface, seed, flow, groups=found.count)
   still = []
   for _, idx in found.members():
     fit = run.fit(idx)
-    if fit is not None and _onto_what_stood(scene, pc1[idx], fit):
+    if fit is not None and onto_what_stood(scene, pc1[idx], fit):
       fit = None
     if fit is None:
       still.append(idx)
@@ -386,4 +374,4 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
       fit = run.fit(part)
       if fit is not None and _new_place(scene, pc1[part], fit):
         run.apply(part, fit)
-  return run.flow.astype(np.float32), Found(found.count, run.candidates, run.moved)
+  return run

@@ -32,7 +32,7 @@ import numpy as np
 
 from jaxflow.errors import ConfigError, DataError
 from jaxflow.geometry import frames, rigid
-from jaxflow.lidar import ego, ground, objects, sensor
+from jaxflow.lidar import both_ways, ego, ground, objects, sensor
 from jaxflow.lidar.settings import DEFAULTS, Sweep
 
 
@@ -203,7 +203,8 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
     starts, start_flow = _network_start(flow_fn, pc1_Nx3, pc2_Mx3, pc1, keep1, keep2, order,
                                         settings)
   rate = settings.frame_rate_hz
-  fit = ego.estimate(pc1, pc2, g1, g2, starts, seed, settings=settings.ego, frame_rate_hz=rate)
+  fit = ego.estimate(pc1, pc2, g1, g2, starts, seed, settings=settings.ego, frame_rate_hz=rate,
+                     refit_search=True)
   if fit.note:
     notes.append(fit.note)
   surface, g1, g2 = _joint_ground(pc1, pc2, fit.motion, surf1, surf2, g1, g2, names[0],
@@ -212,8 +213,10 @@ def raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up: str = "z", max_range: float | 
   if moving_objects:
     # Not the ground: seen from the road's own height the whole road lies at one elevation.
     sensor2, _ = sensor.sensor_position(pc2[~g2], settings.sensor, seed)
-    flow, found = objects.object_flow(pc1, pc2, g1, g2, fit.motion, surface, start_flow, seed,
-                                      settings.objects, settings.ego, rate, sensor2)
+    sensor1 = (sensor.sensor_position(pc1[~g1], settings.sensor, seed)[0]
+               if settings.objects.both_ways else None)
+    flow, found = both_ways.object_flow(pc1, pc2, g1, g2, fit.motion, surface, start_flow, seed,
+                                        settings.objects, settings.ego, rate, (sensor1, sensor2))
   else:
     flow, found = fit.motion.flow(pc1), objects.Found(0, 0, [])
   if not np.isfinite(flow).all():  # never reached by construction; never returned either
