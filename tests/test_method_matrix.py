@@ -104,5 +104,6 @@ def test_evaluate_runs_each_method_on_the_lidar_layout(method, extra, layouts, s
                               method, "--checkpoint", str(smoke_checkpoint), "--max_points", "0",
                               *extra, tmp_path=tmp_path)
   assert "av2 official" in stdout and "bucketed 2024" in stdout, stdout
+  assert [len(bands) for bands in results["bucketed"]["speeds"].values()] == [4] * 5  # by speed
   assert results["method"] == method and results["pairs"] == 3
   assert results["av2"]["challenge_points"]

@@ -1,5 +1,5 @@
 """benchmarks/sweeps.py reports both directions: the default pipeline on each pair taken backwards,
-row by row beside the forward one, and the bucketed table by class."""
+row by row beside the forward one, and the bucketed table by class and by speed band."""
 
 import json
 import subprocess
@@ -19,6 +19,9 @@ def test_the_backward_row_is_the_pipeline_on_the_pair_taken_backwards(tmp_path):
                         "--directions", "backward", "--json", str(out)],
                        capture_output=True, text=True, check=True)
   assert "PEDESTRIAN" in run.stdout  # the bucketed table by class
+  assert "movers by class and speed" in run.stdout  # ... and by speed band
+  speeds = json.loads(out.read_text())["official"]["ego + objects (default), backward"]["speeds"]
+  assert [b["speeds"][0] for b in speeds["CAR"]] == [0.04, 0.32, 1.0, 2.0]
   rows = json.loads(out.read_text())["per_pair"]
   assert list(rows) == ["ego + objects (default), backward"]
   backward = ss.sweep_pair("val", 0, ss.Options(reverse=True))

@@ -163,12 +163,13 @@ def roadside(rng, scene: Labelled, street: Street, side: int, dense: bool):
   """Poles and trees on one sidewalk, and the cars parked along it."""
   road, centre = street.road, street.centre
   for _ in range(rng.integers(3, 10)):
-    x, z, h = centre + side * (road + rng.uniform(0.4, 2.0)), rng.uniform(-60, 60), rng.uniform(3, 8)
+    x = centre + side * (road + rng.uniform(0.4, 2.0))
+    z, h = rng.uniform(-60, 60), rng.uniform(3, 8)
     parts = [(syn.CYLINDER, syn.IDENTITY, (0, h / 2, 0), (rng.uniform(0.08, 0.25), h / 2, 0), None)]
     if rng.random() < 0.5:
       crown = rng.uniform(1.0, 2.5)
-      parts.append((syn.ELLIPSOID, syn.IDENTITY, (0, h + crown * 0.6, 0), (crown, crown * 0.8, crown),
-                    syn.random_bump(rng, 0.12)))
+      parts.append((syn.ELLIPSOID, syn.IDENTITY, (0, h + crown * 0.6, 0),
+                    (crown, crown * 0.8, crown), syn.random_bump(rng, 0.12)))
     scene.add(parts, syn.IDENTITY, (x, street.height(x, z) - 0.05, z))
   for _ in range(rng.integers(1, 7) if not dense else rng.integers(6, 12)):
     x, z = centre + side * (road - 1.1), rng.uniform(-50, 50)

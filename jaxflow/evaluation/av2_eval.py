@@ -187,7 +187,8 @@ def bucketed_by_speed(sums: np.ndarray, bands=SPEED_BANDS) -> dict:
       out[name].append({
         "speeds": (float(lo), float(hi)), "points": int(count.sum()),
         "epe": float(err.sum() / count.sum()) if full.any() else float("nan"),
-        "dynamic_norm_epe": float(np.mean(err[full] / speed[full])) if full.any() else float("nan")})
+        "dynamic_norm_epe": (float(np.mean(err[full] / speed[full])) if full.any()
+                             else float("nan"))})
   return out
 
 

@@ -11,15 +11,12 @@ pc1 (the ego-motion inverted, heights from the same ground, judged from pc1's se
 passes in two threads. They are associated through the backward motions: each backward mover,
 its motion inverted, stood at pc1's time where it lands on pc1, and pc1's points there (above the
 ground, within a cell seen from above) are offered that motion. Where the two directions
-disagree, what both sweeps show decides (pc1's points moved onto pc2, and pc2's moved back onto
-pc1: along a flat side pc2's extent is what pc1's points lack). Where the forward pass left the
-points standing (or moved them under `dynamic`), the backward motion must beat that clearly, by
-the objects' own judge, and pass its other rules; where it moved them otherwise, both are movers
-and only which motion is asked: the backward one must fit better by the judge's significance
-alone (jaxflow.lidar.judge.better: between two motions sliding along a flat side the gain is
-small, but consistent). A pair taken backwards weighs the same two sets of movers,
-so predicting it finds what the forward run finds. `objects.both_ways=False`: the forward pass
-alone.
+disagree, pc2 decides, as it decides every fit of pc1's points: the backward motion replaces the
+forward answer, standing still or another motion, only where pc1's points fit pc2 clearly better
+with it by the objects' own judge, and it passes its other rules. (pc2's points do not judge it
+too: the backward motion was fitted to them, and a slow car in a queue, its own place hidden in
+pc1, fits the place of the car behind it as well: benchmarks/REAL_SWEEPS.md.) A pair taken
+backwards weighs the same two sets of movers. `objects.both_ways=False`: the forward pass alone.
 """
 
 from concurrent import futures
@@ -75,8 +72,8 @@ def object_flow(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
 def _offer(forward, backward, idx2, motion2: rigid.Motion, above1, s):
   """Offers a backward mover (pc2's points `idx2`, their motion to pc1's time `motion2`, frame 2)
   to pc1's points above the ground (`above1`) near where it stood at pc1's time (from above):
-  `forward` gives them that motion where it fits both sweeps clearly better than the one it gave
-  them (_two_sided)."""
+  `forward` gives them that motion where they fit pc2 clearly better with it than with the flow
+  it gave them."""
   to2 = forward.scene.ego_motion
   back = to2.inverse()
   stood = back.apply(motion2.apply(backward.pc1[idx2]))  # frame 1
@@ -92,34 +89,11 @@ def _offer(forward, backward, idx2, motion2: rigid.Motion, above1, s):
   pts = forward.pc1[idx]
   if len(idx) < s.min_points:
     return  # pc1 did not see it there (hidden, or out of its rings)
-  fit = ("both ways", motion, judge.truncation(pts, pts, s))
+  truncate = judge.truncation(pts, pts, s)
+  fit = ("both ways", motion, truncate)
   if not forward.scene.plausible(motion, pts) or objects.onto_what_stood(forward.scene, pts, fit):
     return
-  now = _motion_of(forward, idx)
-  moving = np.linalg.norm(now.apply(pts) - pts, axis=1).mean() >= s.dynamic
-  if judge.better(_two_sided(forward, idx, backward, idx2, now, s),
-                  _two_sided(forward, idx, backward, idx2, motion, s), s, moving):
+  now = back.apply(pts + forward.flow[idx])  # the forward answer, frame 1
+  if judge.clearly_better(forward.scene.costs(now, truncate),
+                          forward.scene.costs(motion.apply(pts), truncate), s):
     forward.take_over(idx, fit)
-
-
-def _motion_of(run, idx) -> rigid.Motion:
-  """The motion (frame 1) `run` gave most of the points `idx`: standing still where no mover
-  holds half of them."""
-  best, most = rigid.Motion(np.eye(3), np.zeros(3)), len(idx) / 2
-  for mine, motion in run.motions:
-    held = np.isin(idx, mine).sum()
-    if held > most:
-      best, most = motion, held
-  return best
-
-
-def _two_sided(forward, idx, backward, idx2, motion: rigid.Motion, s) -> np.ndarray:
-  """Per-point costs of `motion` (frame 1) seen from both sweeps: pc1's points `idx` moved onto
-  pc2, and pc2's points `idx2` moved back onto pc1 (along a flat side pc2's extent is the
-  evidence pc1's points lack), each in its own truncation."""
-  to2 = forward.scene.ego_motion
-  in2 = to2.inverse().then(motion.inverse()).then(to2)  # frame 2, pc2's time to pc1's
-  pts1, pts2 = forward.pc1[idx], backward.pc1[idx2]
-  return np.concatenate([
-    forward.scene.costs(motion.apply(pts1), judge.truncation(pts1, pts1, s)),
-    backward.scene.costs(in2.apply(pts2), judge.truncation(pts2, pts2, s))])

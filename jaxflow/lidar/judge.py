@@ -47,18 +47,6 @@ def clearly_better(base, other, settings) -> bool:
   return mean(other, judging.min_seen) <= judging.hidden_fit if verdict is None else verdict
 
 
-def better(base, other, settings, both_move: bool) -> bool:
-  """clearly_better where the base placement stands still; between two motions (both already
-  judged movers: which one is the question, not whether it moves) the other must fit better by
-  `significance` standard errors of the paired gain alone, on the points pc2 sees in both."""
-  if not both_move:
-    return clearly_better(base, other, settings)
-  judging = settings.judge
-  margins_off = groups.Rule(0.0, 0.0, judging.significance, judging.min_seen,
-                            settings.min_points // 2)
-  return bool(groups.beats(base, other, margins_off))
-
-
 def truncation(pts_Kx3, queries_Qx3, s) -> float:
   """An object's cost truncation (m): `spacings` of its median point spacing (each query's
   nearest other point of the object), within truncate .. max_truncate."""

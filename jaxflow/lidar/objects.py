@@ -13,10 +13,10 @@ ground), and keeps the motion that fits pc2 best, standing still unless another 
 better (jaxflow.lidar.judge); a kept motion is refitted on all the object's points. A walking
 person moves less a frame than `unexplained`: a group shaped as a person (narrow, upright, a
 person's height) first gets the shift of the centroid of pc2's points around it, kept when it
-beats standing still by the same rule (jaxflow.lidar.person). A long object sliding along its flat side (a car passing
-beside the sensor) leaves few points unexplained and a cost flat along its length: its ends vote
-for its shift along its axis (jaxflow.lidar.along), a candidate's start unless the costs clearly
-refute it, kept along a flat side (an end face seen refines it). An object moved farther than
+beats standing still by the same rule (jaxflow.lidar.person). A long object sliding along its
+flat side (a car passing beside the sensor) leaves few points unexplained and a cost flat along
+its length: its ends vote for its shift along its axis (jaxflow.lidar.along), a candidate's start
+unless the costs clearly refute it, kept along a flat side (an end face seen refines it). An object moved farther than
 its own width must leave a place pc2 shows empty and land where pc1 saw nothing (each start and
 each of the search's best shifts is held to it). A group kept still may join a mover to what
 stands beside it (a car passing parked cars): the connected cells of its unexplained points are

@@ -1,6 +1,7 @@
-"""A walking person: a group shaped as one (narrow from above, upright, a person's height) moves 5-17
-cm a frame, under what the ego-motion leaves unexplained, so it first gets the shift of the centroid
-of pc2's points around it (jaxflow.lidar.objects), kept when it beats standing still clearly.
+"""A walking person: a group shaped as one (narrow from above, upright, a person's height) moves
+5-17 cm a frame, under what the ego-motion leaves unexplained, so it first gets the shift of the
+centroid of pc2's points around it (jaxflow.lidar.objects), kept when it beats standing still
+clearly.
 
     if is_person(idx, pc1_Nx3, height_N, settings):
       fit = fit_person(scene, pc1_Nx3[idx])   # ("person", shift, truncation) or None

@@ -325,10 +325,6 @@ class Objects:
   # pc2's groups fitted against pc1 too, each mover found offered to pc1's points where it stood
   # (jaxflow.lidar.both_ways); False: pc1's groups alone
   both_ways: bool = True
-  # m: a motion moving an object's points less than this on average (a parked car's few
-  # centimetres) counts as standing still where the two directions' answers are weighed (av2's
-  # dynamic threshold)
-  dynamic: float = 0.05
   judge: Judge = Judge()
   part: Part = Part()
   search: Search = Search()
@@ -338,7 +334,7 @@ class Objects:
 
   def __post_init__(self):
     _need(self, "lidar objects.", _NUMBER, "cell", "object_top", "novelty", "max_high",
-          "max_size", "unexplained", "max_yaw_deg_per_s", "low_ground", "dynamic")
+          "max_size", "unexplained", "max_yaw_deg_per_s", "low_ground")
     _need(self, "lidar objects.", _COUNT, "min_points")
     _need(self, "lidar objects.", _FLAG, "both_ways")
     for name, cls in (("judge", Judge), ("part", Part), ("search", Search), ("icp", Icp),
