@@ -15,10 +15,10 @@ Every start's result and zero motion itself are candidates, and the best of them
 points it explains (GICP has no robust loss: traffic beside the sensor pulls it), and (the
 raw-sweep pipeline's) GICP refitted on the points the search's start explains (where that traffic
 pulls GICP off from any start); the one with the least static residual (`Residual`: truncated
-point-to-plane distance of pc1 to pc2's local planes)
-is returned, so a fit that explains the world worse than standing still never is. The tuning is
-`settings`, jaxflow.lidar.settings.Ego (default: its values); the search's per-second motions are
-divided by `frame_rate_hz` (default the settings', 10 Hz).
+point-to-plane distance of pc1 to pc2's local planes) is returned, so a fit that explains the
+world worse than standing still never is. The tuning is `settings`, jaxflow.lidar.settings.Ego
+(default: its values); the search's per-second motions are divided by `frame_rate_hz` (default the
+settings', 10 Hz).
 """
 
 import dataclasses

@@ -16,13 +16,14 @@ person's height) first gets the shift of the centroid of pc2's points around it,
 beats standing still by the same rule (jaxflow.lidar.person). A long object sliding along its
 flat side (a car passing beside the sensor) leaves few points unexplained and a cost flat along
 its length: its ends vote for its shift along its axis (jaxflow.lidar.along), a candidate's start
-unless the costs clearly refute it, kept along a flat side (an end face seen refines it). An object moved farther than
-its own width must leave a place pc2 shows empty and land where pc1 saw nothing (each start and
-each of the search's best shifts is held to it). A group kept still may join a mover to what
-stands beside it (a car passing parked cars): the connected cells of its unexplained points are
-fitted in turn, each kept only where it leaves a place pc2 shows empty for one pc1 showed empty.
-What pc2 saw is judged from its sensor's place (`sensor2`). Points no object claims keep the
-ego-motion. All z up, frame 1. The names: fields of `settings`, jaxflow.lidar.settings.Objects.
+unless the costs clearly refute it, kept along a flat side (an end face seen refines it). An
+object moved farther than its own width must leave a place pc2 shows empty and land where pc1 saw
+nothing (each start and each of the search's best shifts is held to it). A group kept still may
+join a mover to what stands beside it (a car passing parked cars): the connected cells of its
+unexplained points are fitted in turn, each kept only where it leaves a place pc2 shows empty for
+one pc1 showed empty. What pc2 saw is judged from its sensor's place (`sensor2`). Points no
+object claims keep the ego-motion. All z up, frame 1. The names: fields of `settings`,
+jaxflow.lidar.settings.Objects.
 """
 
 import dataclasses
