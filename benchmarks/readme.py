@@ -190,10 +190,41 @@ def this_machine() -> str:
           f"load {load:.1f}")  # a speed figure on a loaded machine is an upper bound
 
 
-def docs_problems(record: dict, root: pathlib.Path) -> list[str]:
-  """The docs against the record: README.md's block as --write makes it, and every other
-  figure's text (holding its recorded value) in its file, whitespace aside."""
+# The data the methods' settings were chosen on (README.md, "Methods and what they measure":
+# optimise's on 7 of the 21 FT3D pairs, the KITTI frame and the synthetic val pairs;
+# benchmarks/REAL_SWEEPS.md: --lidar's on the real labelled Argoverse 2 pair), as README labels
+# name them: (how the label starts, words naming such data). An error figure there is a tuned one.
+TUNED_ON = (("optimise", ("KITTI 000002", "real FT3D", "the 7 FT3D pairs", "synthetic_things val",
+                          "synthetic_lidar val")),
+            ("three-way EPE", ("the real labelled Argoverse 2 pair",)))
+
+
+def tuned_problems(record: dict) -> list[str]:
+  """A figure on data its settings were chosen on says so: its record's `tuned` (where they were
+  chosen), and its label (README.md's block) or text saying "tuned"; TUNED_ON's figures (a time
+  aside) must have `tuned`."""
   problems = []
+  for f in record["figures"]:
+    label = f.get("label", "")
+    on_tuned = "seconds" not in label and any(
+      label.startswith(start) and any(w in label for w in words) for start, words in TUNED_ON)
+    if on_tuned and not f.get("tuned"):
+      problems.append(f"{f['id']}: on data its settings were chosen on ({label!r}): record where "
+                      "in its `tuned` and say \"tuned\" in its label")
+    texts = f.get("text", label)
+    if f.get("tuned") and not all(
+        "tuned" in t and "nobody tuned" not in t and "never tuned" not in t
+        for t in (texts if isinstance(texts, list) else [texts])):
+      problems.append(f"{f['id']}: a tuned figure ({f['tuned']}) whose "
+                      f"{'text' if 'text' in f else 'label'} does not say \"tuned\"")
+  return problems
+
+
+def docs_problems(record: dict, root: pathlib.Path) -> list[str]:
+  """The docs against the record: README.md's block as --write makes it, every other figure's
+  text (holding its recorded value) in its file, whitespace aside, and the tuned figures marked
+  (tuned_problems)."""
+  problems = tuned_problems(record)
   readme = (root / "README.md").read_text()
   if block_of(readme) != render(record):
     problems.append("README.md: its figures block is not what --write makes")

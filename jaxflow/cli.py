@@ -3,6 +3,7 @@
     from jaxflow import cli
     cli.run(main)              # absl: checks the config flags, parses, then main(argv)
     cli.guard(main, args)      # any other parser: calls main(args) with the same error handling
+    cli.call(predict.run, ["pc1.npy", "pc2.npy", "--out", "f.npy"])  # a command in this process
 
 `jaxflow.errors.JaxflowError` (bad file, argument, checkpoint, non-finite training), absl flag
 errors, a config file that does not load and a `--config.FIELD` that names no field print
@@ -19,14 +20,13 @@ The options predict and evaluate.py share mean the same in both (`define_run_fla
 import logging as pylogging
 import os
 import sys
-import warnings
 from pathlib import Path
 from typing import Any, Callable
 
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from jaxflow.runtime import configfile, determinism, host_memory
+from jaxflow.runtime import configfile, determinism, host_memory, orbax_reports
 from jaxflow.errors import ConfigError, JaxflowError
 
 EXIT_USER_ERROR = 2
@@ -46,41 +46,9 @@ def fail(message: str):
   sys.exit(EXIT_USER_ERROR)
 
 
-def _drop_closed_loop_reports():
-  """Drops the "Event loop is closed" errors that orbax's abandoned reads report.
-
-  When one array of a checkpoint cannot be read, orbax raises (a CheckpointError here) and closes
-  its event loop while tensorstore's reads of the other arrays are still running; each of them then
-  reports a RuntimeError into the closed loop as an unraisable exception, a traceback after the
-  one-line error, the coroutines it abandons warn at exit that they were never awaited, and the
-  reads that failed too log "Task exception was never retrieved" when garbage collected (at any
-  time, often at exit). The failure itself has been raised; these reports add nothing.
-  """
-  warnings.filterwarnings("ignore", message=r"coroutine '.*' was never awaited",
-                          category=RuntimeWarning)
-  previous = sys.unraisablehook
-  if getattr(previous, "drops_closed_loop_reports", False):
-    return  # installed by an earlier call
-  pylogging.getLogger("asyncio").addFilter(_keep_unless_abandoned_read)
-
-  def hook(unraisable):
-    e = unraisable.exc_value
-    if not (isinstance(e, RuntimeError) and str(e) == "Event loop is closed"):
-      previous(unraisable)
-
-  hook.drops_closed_loop_reports = True
-  sys.unraisablehook = hook
-
-
-def _keep_unless_abandoned_read(record: pylogging.LogRecord) -> bool:
-  text = record.getMessage()
-  return not (text.startswith("Task exception was never retrieved")
-              and "coro=<async_deserialize()" in text)
-
-
 def guard(main: Callable[..., Any], *args, **kwargs):
   """main(*args, **kwargs), with a JaxflowError turned into one line and exit code 2."""
-  _drop_closed_loop_reports()
+  orbax_reports.drop_closed_loop_reports()
   try:
     return main(*args, **kwargs)
   except JaxflowError as e:
@@ -98,6 +66,8 @@ def _write_and_exit(text: str):
 
 
 _METHOD_FIELDS = {}  # the command line's --method.NAME.FIELD=V: {(NAME, FIELD): V}
+_DEFINED = set()  # the flags the running command defined (run), removed by `call`
+_IN_PROCESS = []  # non-empty while `call` runs a command
 
 
 def take_method_fields(argv: list[str]) -> list[str]:
@@ -291,6 +261,8 @@ def _parse_flags(argv: list[str], config_names=(),
         fail(str(e))
     _write_and_exit("".join(text))
   from jaxflow.runtime import compile_cache  # pylint: disable=import-outside-toplevel  (jax: not for --help)
+  if _IN_PROCESS and flags.FLAGS.host_memory is None:
+    host_memory_default = host_memory.RELEASE  # malloc's settings are the caller's (cli.call)
   try:  # before jax starts its threads, before anything compiles
     notes = [host_memory.keep(flags.FLAGS.host_memory, host_memory_default),
              compile_cache.enable(flags.FLAGS.compilation_cache)]
@@ -314,6 +286,7 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
   when neither --host_memory nor $JAXFLOW_HOST_MEMORY says (jaxflow.runtime.host_memory).
   """
   config_files = config_files or {}
+  _DEFINED.clear()  # (cli.call removes these afterwards)
   check_renamed(sys.argv, {**RENAMED, **(renamed or {})})
   sys.argv = take_method_fields(sys.argv)
   try:
@@ -322,8 +295,11 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
   except ConfigError as e:
     fail(str(e))
   before = set(flags.FLAGS)
-  if define_flags is not None:
-    define_flags()
+  try:
+    if define_flags is not None:
+      define_flags()
+  finally:  # (also when a config default fails to load: cli.call removes what was defined)
+    _DEFINED.update(set(flags.FLAGS) - before)
   if _METHOD_FIELDS and "method" not in flags.FLAGS:
     fail(f"--method.{'.'.join(next(iter(_METHOD_FIELDS)))}: this command has no --method")
   flags.DEFINE_bool("print_config", False, "Print the config (with the overrides given) field by "
@@ -339,6 +315,7 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
                     "compiled program frees for its next call (no fresh page faults; the process "
                     "holds what it took); release: malloc as it is. Default: "
                     f"$JAXFLOW_HOST_MEMORY, else {host_memory_default} (jaxflow.runtime.host_memory).")
+  _DEFINED.update(set(flags.FLAGS) - before)
   for name in sorted(set(flags.FLAGS) - before):  # --help shows sys.argv[0]'s key flags
     if "." not in name:  # the config's fields: --print_config lists them
       flags.FLAGS.register_key_flag_for_module(sys.argv[0], flags.FLAGS[name])
@@ -348,3 +325,58 @@ def run(main: Callable[[list], Any], define_flags: Callable[[], Any] | None = No
                 full=help_asked[0] == "--helpfull")
   app.run(lambda argv: guard(main, argv),
           flags_parser=lambda argv: _parse_flags(argv, list(config_files), host_memory_default))
+
+
+def call(command: Callable[[], Any], argv: list[str], prog: str | None = None) -> int:
+  """Runs a command's console-script function (`command`: predict.run, evaluate.run, train.run,
+  ...) on `argv` (without the program name) in this process, as `python -m` would in its own, and
+  returns its exit code: the compiled programs of earlier calls are reused (the tests' commands).
+
+  What it prints goes to sys.stdout / sys.stderr as they are when called (redirect them to read
+  it). A bug prints its traceback on stderr and gives 1, as a process would. Afterwards absl's flags
+  are as before (the command's removed, the rest unparsed), and so are the logging handlers and
+  JAX's compilation-cache settings; malloc is left as it is (--host_memory: a process's setting),
+  and `--deterministic` needs a process of its own (XLA reads its flags once).
+  """
+  import traceback  # pylint: disable=import-outside-toplevel
+
+  app.define_help_flags()  # once a process: theirs are not the command's to remove
+  module = sys.modules[command.__module__]
+  saved_argv, saved_handlers = sys.argv, list(pylogging.getLogger().handlers)
+  saved_done = (app._run_init.done, app._register_and_parse_flags_with_usage.done)  # pylint: disable=protected-access
+  saved_verbosity, was_parsed = logging.get_verbosity(), flags.FLAGS.is_parsed()
+  saved_cache = _compile_cache().settings() if "jax" in sys.modules else None
+  sys.argv = [prog or getattr(module, "__file__", None) or command.__module__, *map(str, argv)]
+  _IN_PROCESS.append(True)
+  try:
+    command()
+    code = 0
+  except SystemExit as e:
+    code = e.code if isinstance(e.code, int) else 0 if e.code is None else 1
+    if not isinstance(e.code, (int, type(None))):
+      print(e.code, file=sys.stderr)  # what the interpreter prints for sys.exit("text")
+  except Exception:  # pylint: disable=broad-except  (a bug: the traceback, exit 1)
+    traceback.print_exc()
+    code = 1
+  finally:
+    _IN_PROCESS.pop()
+    for name in sorted(set(flags.FLAGS)):  # the command's flags and its config's --NAME.FIELD
+      if name in _DEFINED or name.split(".")[0] in _DEFINED:
+        delattr(flags.FLAGS, name)
+    _DEFINED.clear()
+    _METHOD_FIELDS.clear()
+    flags.FLAGS.unparse_flags()
+    if was_parsed:
+      flags.FLAGS.mark_as_parsed()
+    app._run_init.done, app._register_and_parse_flags_with_usage.done = saved_done  # pylint: disable=protected-access
+    logging.set_verbosity(saved_verbosity)
+    pylogging.getLogger().handlers[:] = saved_handlers
+    if saved_cache is not None:
+      _compile_cache().restore(saved_cache)
+    sys.argv = saved_argv
+  return code
+
+
+def _compile_cache():
+  from jaxflow.runtime import compile_cache  # pylint: disable=import-outside-toplevel  (jax)
+  return compile_cache

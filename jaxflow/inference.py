@@ -45,6 +45,7 @@ from jaxflow.lidar import sweep
 from jaxflow.methods import lidar as lidar_method
 from jaxflow.methods import registry
 from jaxflow.network import checkpointing
+from jaxflow.refine import progress
 from jaxflow.runtime import configfile
 
 DEFAULT_METHOD = "optimise"  # the API's and predict's: the network's flow refined per pair
@@ -155,10 +156,16 @@ class Predictor:
               max_points: int | None = DEFAULT_MAX_POINTS, full: bool = False, seed: int = 0,
               names=("pc1", "pc2"), lidar: bool = False, up: str | None = None,
               ground_limits: bool = True) -> Prediction:
-    """The Prediction of every point of pc1 (the module docstring: sampling, full, raw sweeps).
-    `up`: the clouds' up axis (default: the method's, z for raw sweeps, else y, the models' frame;
-    jaxflow.geometry.frames): the clouds are rotated into the method's frame and the flow back.
-    `lidar`: the lidar method running this predictor's method (as_lidar)."""
+    """The Prediction of every point of pc1 (the module docstring: sampling, full, raw sweeps;
+    progress shown, jaxflow.refine.progress). `up`: the clouds' up axis (default: the method's, z
+    for raw sweeps, else y, the models' frame; jaxflow.geometry.frames): the clouds are rotated into
+    the method's frame and the flow back. `lidar`: the lidar method running this one (as_lidar)."""
+    with progress.Working(f"flow of {names[0]} ({'lidar' if lidar else self.method})"):
+      return self._predict_pair(pc1_Nx3, pc2_Mx3, num_iters, max_points, full, seed, names, lidar,
+                                up, ground_limits)
+
+  def _predict_pair(self, pc1_Nx3, pc2_Mx3, num_iters, max_points, full, seed, names, lidar, up,
+                    ground_limits) -> Prediction:  # predict's, shown
     if lidar:
       return self.as_lidar().predict(pc1_Nx3, pc2_Mx3, num_iters, max_points, full, seed, names,
                                      up=up, ground_limits=ground_limits)
@@ -216,6 +223,7 @@ class Predictor:
     sub2 = pc2_Mx3 if idx2 is None else pc2_Mx3[idx2]
     # A method refining the network's flow: the network sees the samples, the method every point.
     every_point = registry.get(self.method).refines_start
+    progress.stage("network")  # (what a log's progress line names; compiled at a first call)
     flow_Sx3, info = (self._start(num_iters) if every_point else self._fn(num_iters))(
       self.params, sub1[None], sub2[None])
     flow_Sx3 = np.asarray(flow_Sx3[0])

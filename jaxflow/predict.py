@@ -2,6 +2,7 @@ r"""Scene flow of your own point files (jaxflow-predict): the flow of every poin
 
     python -m jaxflow.predict SWEEP1 SWEEP2 --lidar [--up z] [--max_range 35] --out FLOW.npy
         [--method.lidar.objects.max_yaw_deg_per_s=100 ...]
+    python -m jaxflow.predict S0 S1 ... SN --lidar --out DIR   # a log: DIR/NAME.npy each pair
     python -m jaxflow.predict PC1 PC2 --out FLOW.npy [--method optimise|network|nsfp]
         [--checkpoint PATH] [--config CONFIG] [--iters 32] [--max_points 8192 | --full
         [--corr_chunk N]] [--seed 0] [--steps N] [--objective exact|grid] [--render VIEW.png]
@@ -24,9 +25,11 @@ Python API's) refines the network's flow against the whole clouds; `network` is 
 (the paper's protocol, evaluate.py's default); `nsfp` is the NSFP baseline (no checkpoint;
 --objective exact or grid). --steps N caps the optimisation steps; --method.METHOD.FIELD=V sets
 any of the method's settings (e.g. --method.optimise.bodies.inlier=0.1; --print_config lists
-them). An optimisation that did not converge says so on stderr. A long one (NSFP: minutes) shows
-a bar on a terminal; with stderr in a log file it writes its expected time (an estimate, from the
-pace of its first steps) and a line every 10% of its steps (jaxflow.refine.optimiser).
+them). An optimisation that did not converge says so on stderr. Long work shows progress, whatever
+the method: a bar on a terminal (the stage, the time so far), with stderr in a log file a line
+whenever 10 s passed without one (jaxflow.refine.progress); an optimisation driven step by step
+(NSFP: minutes) also writes its expected time and a line every 10% of its steps. A raw 360-degree
+sweep given without --lidar gets a first, short note, before the work, naming --lidar.
 
 Cloud size (jaxflow.inference): clouds above --max_points (config.eval.num_points, 8192) are sampled
 and the flow mapped back to every PC1 point; --full (or --max_points 0) uses whole clouds, the
@@ -54,7 +57,12 @@ except the runtime fields of jaxflow.network.model_fields (corr_chunk, infer_tru
 --config.model.infer_truncate_k=64: faster with --full). A stage-2 checkpoint gives the refined
 flow, a stage-1 one the last iteration's.
 
-Outputs: --out FILE; --save_flows DIR writes DIR/NAME.npy, NAME made from "PC1,PC2" as evaluate.py
+A log (three or more files): the flow of each consecutive pair as DIR/NAME.npy (NAME: the
+pair's first file's stem), in one process, the method loaded once (jaxflow.predict_log: the
+order, the checks).
+
+Outputs, every path checked before any work (a wrong suffix or an unwritable place: one line, exit
+2; a missing folder is made, with a note): --out FILE; --save_flows DIR writes DIR/NAME.npy, NAME made from "PC1,PC2" as evaluate.py
 --save_flows names its pairs (jaxflow.evaluation.export); --render FILE.png a top view of this pair
 in its up axis, FILE.html a 3D viewer (jaxflow.viz.viewer; evaluate.py's --render_dir DIR: pictures
 of every pair).
@@ -68,9 +76,23 @@ with code 2.
 import pathlib
 import sys
 
-from jaxflow import cli, inference
+from jaxflow import cli
+from jaxflow.evaluation import export
+
+# The output paths of one pair (--out: _outputs), checked before any work: (suffixes, a folder).
+OUTPUTS = {"render": ((".png", ".html"), False), "ego_out": ((), False),
+           "save_flows": ((), True), "submission": ((), True)}
+if __name__ == "__main__":  # before jax loads (seconds on a CPU): a wrong path is said at once
+  cli.guard(export.check_outputs, export.outputs_in_argv(sys.argv, OUTPUTS), make=False)
+
+# pylint: disable=wrong-import-position
+import numpy as np
+
+from jaxflow import inference
 from jaxflow.errors import ConfigError
-from jaxflow.evaluation import export, submission
+from jaxflow.evaluation import submission
+from jaxflow.geometry import frames
+from jaxflow.lidar import sweep
 from jaxflow.methods import registry
 
 
@@ -112,6 +134,22 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
                       "its flow R x + t - x is the world's own motion.")
 
 
+def sweep_hint(pc1_Nx3, up: str | None, method: str) -> str | None:
+  """A first, short note when pc1 looks like a raw 360-degree sweep (flat along an axis, points all
+  around it) and `method` is not the raw-sweep one (None otherwise): said before the work."""
+  if registry.get(method).raw_sweeps:
+    return None
+  axis = up or frames.flat_axis(pc1_Nx3)[0]
+  if axis is None or axis == registry.get(method).up:
+    return None
+  k = frames.up_index(axis)
+  around = np.asarray(pc1_Nx3)[:, [i for i in range(3) if i != k] + [k]]
+  if sweep.azimuth_coverage(around[np.isfinite(around).all(1)]) < 0.9:  # a camera's view
+    return None
+  return (f"this looks like a raw 360-degree sweep ({axis} up, points all around): --lidar is the "
+          "method for raw sweeps")
+
+
 def _used(name: str, n: int, max_points: int | None) -> str:
   """How a cloud of n points went into the method, for the closing message."""
   if not max_points or n <= max_points:
@@ -146,9 +184,14 @@ def _outputs(FLAGS, raw_sweeps: bool) -> pathlib.Path:
     raise ConfigError("--ego_out writes the sweep pipeline's ego-motion: it needs --lidar")
   if FLAGS.out:
     export.check_flow_path(pathlib.Path(FLAGS.out))
+  outputs = {"out": (export.FLOW_SUFFIXES, False), **OUTPUTS}
+  notes = export.check_outputs([(f"--{flag}", FLAGS[flag].value, *kind)
+                                for flag, kind in outputs.items()])
   if FLAGS.render and FLAGS.render.endswith(".html"):  # its extra checked before the work
     from jaxflow.viz import viewer  # pylint: disable=import-outside-toplevel
     viewer.require_plotly()
+  for note in notes:  # a missing folder is made, and said (docs/users.md)
+    print(f"note: {note}", file=sys.stderr)
   return pathlib.Path(FLAGS.out or "")
 
 
@@ -175,16 +218,27 @@ def main(argv):
   FLAGS = flags.FLAGS
   if not FLAGS["verbosity"].present:  # orbax warns that a read-only checkpoint is read-only
     absl_logging.set_verbosity(absl_logging.ERROR)
-  if len(argv) != 3:
-    cli.fail(f"expected two point files PC1 PC2, got {len(argv) - 1} argument(s): "
-             f"{' '.join(argv[1:]) or '(none)'}")
+  if len(argv) == 2:
+    cli.fail(f"{argv[1]}: one sweep alone; give two point files PC1 PC2 (a pair) or more sweeps "
+             "(a log: --out DIR)")
+  if len(argv) < 2:
+    cli.fail("expected two point files PC1 PC2 (or more sweeps, a log), got none")
   paths = argv[1:]
   config, model_fields = cli.run_settings(FLAGS.config)
   methods = cli.run_methods()  # a wrong --method.X.FIELD is said now, not when (if) it loads
+  if len(paths) > 2:  # a log: the flow of each consecutive pair (jaxflow.predict_log)
+    from jaxflow import predict_log  # pylint: disable=import-outside-toplevel
+    predict_log.run(FLAGS, paths, config, model_fields, methods,
+                    lambda prediction: _how(prediction, methods, config.eval.num_iters,
+                                            config.eval.num_points))
+    return
   (name, chosen), *nested = methods
   out = _outputs(FLAGS, registry.get(name).raw_sweeps)
   pc1, note1, rows1 = inference.read_cloud(paths[0], FLAGS.columns)
   pc2, note2, _ = inference.read_cloud(paths[1], FLAGS.columns)
+  hint = sweep_hint(pc1, FLAGS.up, name)  # first, before the work (minutes on a sweep)
+  if hint:
+    print(f"note: {paths[0]}: {hint}", file=sys.stderr)
   # A raw-sweep method loads its method's checkpoint when that runs (a camera's view, a start).
   predictor = inference.load_predictor(FLAGS.checkpoint, config, model_fields, name,
                                        method_settings=chosen,
@@ -202,7 +256,7 @@ def main(argv):
   warnings = [n for n in prediction.notes if n.startswith("PC1 has")]
   for note in [note2, *(n for n in prediction.notes if n not in warnings)]:
     if note:
-      print(f"note: {note}", file=sys.stderr)
+      print(f"note: {note.replace(inference.LIDAR_HINT, '') if hint else note}", file=sys.stderr)
   print(f"{', '.join(map(str, written))}: flow of {len(pc1)} points "
         f"({_how(prediction, methods, num_iters, max_points)}; {predictor.source})",
         file=sys.stderr)

@@ -10,17 +10,21 @@ import pytest
 
 import numpy as np
 
-from jaxflow import cli, train
+from jaxflow import cli, evaluate, predict, train
 from jaxflow.runtime import configfile
 from jaxflow.configs import default
 from jaxflow.data import read_points
 from jaxflow.errors import CheckpointError
 from jaxflow.network import checkpointing
 
+import commands
+
 REPO = Path(__file__).absolute().parent.parent
+TRAIN_PY = commands.script("train.py")
 
 
 def python(*args, script=None):
+  """A real subprocess: for what needs a process of its own (each use says why)."""
   env = dict(os.environ, JAX_PLATFORMS="cpu",
              PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
   argv = [sys.executable, "-c", script] if script else [sys.executable, *args]
@@ -71,6 +75,7 @@ ABANDONED_READ = textwrap.dedent("""
 
 
 def test_abandoned_orbax_reads_add_nothing_after_the_one_line():
+  # A subprocess: what the interpreter reports at garbage collection and exit is the subject.
   proc = python(script=ABANDONED_READ)
   assert_one_line_error(proc, "cannot restore the train state")
   # Other asyncio errors still reach the user.
@@ -92,6 +97,8 @@ ABSL_MAIN = textwrap.dedent("""
 
 
 def test_run_with_absl_flags():
+  # Subprocesses (no jax imported: 0.3 s each): a script's own module-level absl flag, as a user
+  # writes one, is defined once a process.
   proc = python(script=ABSL_MAIN + "\n")
   assert proc.returncode == 0 and proc.stdout == "n = 1\n"
   assert_one_line_error(python("-c", ABSL_MAIN, "--n=-3"), "--n must be >= 0, got -3")
@@ -99,37 +106,42 @@ def test_run_with_absl_flags():
 
 
 @pytest.mark.slow
+def train_py(*args):
+  """`python train.py ARGS` in the repository, run in this process (tests/commands.py)."""
+  return commands.run(train.run, *args, cwd=REPO, prog=TRAIN_PY)
+
+
 def test_train_py_user_errors_are_one_line(tmp_path):
   assert_one_line_error(
-    python("train.py", "--config", "configs/default.py:smoke", "--workdir", tmp_path,
-           "--config.data.dataset=nosuchformat:/x"),
+    train_py("--config", "configs/default.py:smoke", "--workdir", tmp_path,
+             "--config.data.dataset=nosuchformat:/x"),
     "nosuchformat",
   )
   assert_one_line_error(
-    python("train.py", "--config", "configs/nosuch.py", "--workdir", tmp_path), "nosuch.py"
+    train_py("--config", "configs/nosuch.py", "--workdir", tmp_path), "nosuch.py"
   )
   assert_one_line_error(
-    python("train.py", "--config", "configs/default.py:smoke", "--workdir", tmp_path,
-           "--config.train.stage=3"),
+    train_py("--config", "configs/default.py:smoke", "--workdir", tmp_path,
+             "--config.train.stage=3"),
     "config.train.stage must be 1 or 2",
   )
   assert_one_line_error(
-    python("train.py", "--config", "configs/default.py:smoke", "--workdir", tmp_path,
-           "--config.train.nosuch=3"),
+    train_py("--config", "configs/default.py:smoke", "--workdir", tmp_path,
+             "--config.train.nosuch=3"),
     "unknown config field 'train.nosuch' in --config.train.nosuch=3",
   )
   assert_one_line_error(
-    python("train.py", "--config", "configs/default.py:bogus", "--workdir", tmp_path), "bogus"
+    train_py("--config", "configs/default.py:bogus", "--workdir", tmp_path), "bogus"
   )
 
 
 def test_near_miss_field_is_named_with_its_flag_and_a_suggestion(tmp_path):
-  proc = python("train.py", "--config", "configs/default.py:smoke", "--workdir", tmp_path,
-                "--config.train.batchsize=4")
+  proc = train_py("--config", "configs/default.py:smoke", "--workdir", tmp_path,
+                  "--config.train.batchsize=4")
   assert_one_line_error(proc)
   assert proc.stderr == ("error: unknown config field 'train.batchsize' in "
                          "--config.train.batchsize=4; did you mean train.batch_size?\n")
-  proc = python("-m", "jaxflow.evaluate", "--config.model.knnn", "3")  # default config; "FLAG V"
+  proc = commands.run(evaluate.run, "--config.model.knnn", "3", cwd=REPO)  # default config; "FLAG V"
   assert proc.stderr == ("error: unknown config field 'model.knnn' in --config.model.knnn; "
                          "did you mean model.knn?\n")
 
@@ -146,8 +158,8 @@ def _leaves(d, prefix=""):
 
 
 def test_print_config_lists_every_field_with_its_comment():
-  proc = python("train.py", "--config", "configs/default.py:smoke", "--print_config",
-                "--config.train.lr=0.5")
+  proc = train_py("--config", "configs/default.py:smoke", "--print_config",
+                  "--config.train.lr=0.5")
   assert proc.returncode == 0, proc.stderr[-2000:]
   lines = proc.stdout.splitlines()
   expected = _leaves(default.get_config("smoke"))
@@ -164,11 +176,13 @@ def test_print_config_lists_every_field_with_its_comment():
 def test_print_config_lists_the_methods_settings_as_they_would_run():
   """predict / evaluate.py --print_config: the chosen method's settings (every stage, nested),
   --steps and --objective applied, with the dataclasses' comments; none for the network alone."""
-  runs = {m: python("-m", "jaxflow.predict", "--print_config", "--method", m, *extra) for m, extra
+  runs = {m: commands.run(predict.run, "--print_config", "--method", m, *extra, cwd=REPO)
+          for m, extra
           in (("optimise", ["--steps", "30", "--method.optimise.bodies.inlier=0.1",
                             "--method.optimise.clusters.search=device"]),
               ("nsfp", ["--objective", "grid", "--method.nsfp.width=64"]), ("network", []))}
-  runs["evaluate"] = python("evaluate.py", "--print_config", "--steps", "7")
+  runs["evaluate"] = commands.run(evaluate.run, "--print_config", "--steps", "7", cwd=REPO,
+                                  prog=commands.script("evaluate.py"))
   assert all(p.returncode == 0 for p in runs.values()), {m: p.stderr[-500:] for m, p in runs.items()}
   lines = runs["optimise"].stdout.splitlines()
   assert "method.optimise.descent.steps = 30  # at most" in lines
@@ -180,12 +194,12 @@ def test_print_config_lists_the_methods_settings_as_they_would_run():
   assert "method.nsfp.width = 64" in [l.split("  #")[0] for l in runs["nsfp"].stdout.splitlines()]
   assert "method." not in runs["network"].stdout and "config.eval." in runs["network"].stdout
   assert "method.network" not in runs["evaluate"].stdout  # evaluate.py's default: the network
-  proc = python("-m", "jaxflow.predict", "--print_config", "--method", "optimise", "--objective",
-                "grid")
+  proc = commands.run(predict.run, "--print_config", "--method", "optimise", "--objective", "grid")
   assert_one_line_error(proc, "--objective", "--method nsfp")
 
 
 def test_print_config_and_help_of_train_py_answer_without_loading_jax():
+  # Subprocesses: whether a fresh process imports jax is the subject.
   for flag in ("--print_config", "--help"):
     proc = python(script=textwrap.dedent(f"""
       import atexit, sys
@@ -224,11 +238,11 @@ def test_predict_text_output_small_cloud_and_size_warning(tmp_path):
   np.save(tmp_path / "small.npy", rng.uniform(-5, 5, (100, 3)).astype(np.float32))
   np.save(tmp_path / "big.npy", rng.uniform(-5, 5, (50_000, 3)).astype(np.float32))
   assert_one_line_error(  # refused before any work: no .npy bytes under another name
-    python("-m", "jaxflow.predict", tmp_path / "small.npy", tmp_path / "big.npy", "--out",
-           tmp_path / "flow.dat"),
+    commands.run(predict.run, tmp_path / "small.npy", tmp_path / "big.npy", "--out",
+                 tmp_path / "flow.dat"),
     "flow.dat: unknown file type '.dat'; use one of .npy, .txt, .csv")
-  proc = python("-m", "jaxflow.predict", tmp_path / "small.npy", tmp_path / "big.npy", "--out",
-                tmp_path / "flow.txt", "--iters", "1")
+  proc = commands.run(predict.run, tmp_path / "small.npy", tmp_path / "big.npy", "--out",
+                      tmp_path / "flow.txt", "--iters", "1")
   assert proc.returncode == 0, proc.stderr[-2000:]
   assert "PC1: all 100 points used; PC2: sampled to 8192 of 50000 points;" in proc.stderr
   assert "warning: PC1 has 100 points and PC2 50000 (500x)" in proc.stderr
@@ -250,6 +264,7 @@ TOOLS = ("jaxflow.predict", "jaxflow.evaluate", "jaxflow.train", "jaxflow.nsfp",
 
 
 def _popen(*args, stdout=subprocess.PIPE):
+  """A real subprocess (the help's exit code into a closed pipe is what a shell sees)."""
   env = dict(os.environ, JAX_PLATFORMS="cpu",
              PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
   return subprocess.Popen([sys.executable, *map(str, args)], cwd=REPO, env=env, stdout=stdout,
@@ -297,11 +312,11 @@ def test_old_flag_spellings_are_refused_naming_the_new_one():
            ("jaxflow.evaluate", "--max-points", "9"): "--max-points is now --max_points",
            ("jaxflow.train", "--config", "configs/default.py:smoke", "--workdir", "w",
             "--num-processes", "2"): "--num-processes is now --num_processes"}
-  procs = {args: _popen("-m", *args) for args in cases}
-  for args, p in procs.items():
-    out, err = p.communicate(timeout=240)
-    lines = err.strip().splitlines()
-    assert p.returncode == 2 and lines == [f"error: {cases[args]}"], (args, err)
+  tools = {"jaxflow.predict": predict.run, "jaxflow.evaluate": evaluate.run, "jaxflow.train": train.run}
+  for args in cases:
+    done = commands.run(tools[args[0]], *args[1:], cwd=REPO)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and lines == [f"error: {cases[args]}"], (args, done.stderr)
 
 
 def test_method_settings_are_replaced_field_by_field_with_their_types_checked():
@@ -332,3 +347,38 @@ def test_method_settings_are_replaced_field_by_field_with_their_types_checked():
     assert all(w in str(e.value) for w in words), (fields, str(e.value))
   with pytest.raises(ConfigError, match="network has no --method.network"):
     registry.settings("network", fields={"steps": 3})
+
+
+def test_commands_in_one_process_answer_as_separate_processes(tmp_path):
+  """jaxflow.cli.call (tests/commands.py), what the tests run commands with: two calls in one
+  process with different arguments (a config field set, then left at its file's value; another
+  config; an error of each tool) answer exactly as two subprocesses, and absl's flags are left as
+  found. Subprocesses here: they are the reference."""
+  from absl import flags  # pylint: disable=import-outside-toplevel
+
+  cases = [("train.py", "--config", "configs/default.py:smoke", "--print_config",
+            "--config.train.lr=0.5", "--config.model.knn=4"),
+           ("train.py", "--config", "configs/default.py:smoke", "--print_config"),
+           ("train.py", "--config", "configs/default.py:eval", "--print_config", "--nodeterministic"),
+           ("train.py", "--config", "configs/default.py:smoke", "--workdir", tmp_path,
+            "--config.train.stage=3"),
+           ("evaluate.py", "--print_config", "--steps", "7", "--method", "optimise"),
+           ("evaluate.py", "--print_config"),
+           ("evaluate.py", "--max-points", "9")]
+  entries = {"train.py": train.run, "evaluate.py": evaluate.run}
+  before = set(flags.FLAGS)
+  in_process = [commands.run(entries[c[0]], *c[1:], cwd=REPO, prog=commands.script(c[0]))
+                for c in cases]
+  assert set(flags.FLAGS) == before and not flags.FLAGS.is_parsed()
+  assert "config" not in flags.FLAGS and "method" not in flags.FLAGS
+  for case, got in zip(cases, in_process):
+    alone = python(*case)
+    assert (got.returncode, got.stdout, got.stderr) == (
+      alone.returncode, alone.stdout, alone.stderr), case
+  # The cases differ where their arguments do (the state of one call does not reach the next).
+  assert "config.train.lr = 0.5" in in_process[0].stdout
+  assert "config.train.lr = 0.001" in in_process[1].stdout
+  assert "config.model.knn = 4" in in_process[0].stdout and "config.model.knn = 8" in in_process[1].stdout
+  assert "method.optimise.descent.steps = 7" in in_process[4].stdout
+  assert "method." not in in_process[5].stdout
+  assert in_process[3].returncode == 2 and in_process[6].returncode == 2

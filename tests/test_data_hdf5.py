@@ -1,10 +1,10 @@
 """HDF5 files: random access, broken files, and the conversion command line (the round trip of
 every reader is in test_data_readers.py)."""
 
+import contextlib
+import io
 import pathlib
 import pickle
-import subprocess
-import sys
 
 import h5py
 import numpy as np
@@ -113,11 +113,15 @@ def test_convert_bad_arguments_exit_2_with_one_line(tmp_path, capsys):
 
 def test_convert_command_line_end_to_end(tmp_path):
   out = tmp_path / "s.h5"
-  run = lambda *args: subprocess.run([sys.executable, "-m", "jaxflow.data.convert", *args], cwd=REPO,
-                                     capture_output=True, text=True, timeout=1200)
-  done = run("--dataset", "synthetic_lidar:2", "--split", "val", "--out", str(out), "--limit", "1")
-  assert done.returncode == 0, done.stderr
-  assert "1/1" in done.stderr  # the tqdm bar
+  def run(*args):  # `python -m jaxflow.data.convert ARGS` (sys.exit(main())), in this process
+    stderr = io.StringIO()
+    with contextlib.redirect_stderr(stderr):
+      return convert_module.main(list(args)), stderr.getvalue()
+
+  code, stderr = run("--dataset", "synthetic_lidar:2", "--split", "val", "--out", str(out),
+                     "--limit", "1")
+  assert code == 0, stderr
+  assert "1/1" in stderr  # the tqdm bar
   assert len(open_dataset(f"h5:{out}")) == 1
-  bad = run("--dataset", "nope:x", "--out", str(out))
-  assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "Traceback" not in bad.stderr
+  code, stderr = run("--dataset", "nope:x", "--out", str(out))
+  assert code == 2 and stderr.strip().count("\n") == 0 and "Traceback" not in stderr

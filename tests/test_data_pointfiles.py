@@ -1,15 +1,16 @@
 """read_points on every format, written here byte by byte (an independent writer), and broken files."""
 
 import struct
-import subprocess
-import sys
 import warnings
 
 import numpy as np
 import pytest
 
 from jaxflow.data import DataError, read_points
+from jaxflow import predict
 from jaxflow.errors import ConfigError
+
+import commands
 
 XYZ = np.array([[0.5, -1.25, 3.0], [2.0, 0.0, -4.5], [1e-3, 7.75, 10.0], [-3.5, 2.5, 0.125]])
 
@@ -252,9 +253,7 @@ def test_predict_refuses_a_three_column_bin_and_takes_columns(sweeps):
   """The command line: the refusal before any model is loaded, and --columns reaches the reader."""
   path, _ = sweeps["xyz.bin"]
   for extra, read_as in (([], 4), (["--columns", "5"], 5)):
-    done = subprocess.run([sys.executable, "-m", "jaxflow.predict", str(path), str(path), "--out",
-                           str(path.with_suffix(".npy")), *extra], capture_output=True, text=True,
-                          timeout=1200)
+    done = commands.run(predict.run, path, path, "--out", path.with_suffix(".npy"), *extra)
     assert done.returncode == 2, done.stderr
     assert f"{path}: read as {read_as} float32 values" in done.stderr, done.stderr
     assert "try --columns 3 (x y z)" in done.stderr and "Traceback" not in done.stderr

@@ -133,7 +133,7 @@ def toy_args(command: str, cwd: Path, checkpoint: Path) -> list[str] | None:
     lidar, up = "--lidar" in argv, argv[argv.index("--up") + 1] if "--up" in argv else "z"
     files = [a for a in argv[3:] if Path(a).suffix in (".npy", ".ply", ".bin")
              and argv[argv.index(a) - 1] not in ("--out",)]
-    for i, name in enumerate(files[:2]):
+    for i, name in enumerate(files):  # two, or a log's sweeps
       points = _sweep(up, i) if lidar else _sweep("y", i)[400:640]  # the cut part of a sweep
       if cwd.is_dir():
         _write_cloud(cwd / name, points)

@@ -12,6 +12,7 @@ import jax
 import numpy as np
 import pytest
 
+from jaxflow import evaluate
 from jaxflow.configs import default
 from jaxflow.data import eval_batches, open_dataset
 from jaxflow.errors import CheckpointError, ConfigError
@@ -22,6 +23,7 @@ from jaxflow.network.model import build_model
 
 REPO = Path(__file__).absolute().parent.parent
 from conftest import CACHE  # (the one compilation cache of this checkout)
+import commands
 jax.config.update("jax_compilation_cache_dir", CACHE)
 STEP = 1  # the step of conftest's smoke_checkpoint
 
@@ -34,6 +36,12 @@ def workdir(smoke_checkpoint):
 
 
 def evaluate_cli(*args):
+  """`python evaluate.py ARGS` in the repository, run in this process (tests/commands.py)."""
+  return commands.run(evaluate.run, *args, cwd=REPO, prog=commands.script("evaluate.py"))
+
+
+def evaluate_subprocess(*args):
+  """`python evaluate.py ARGS` as a process of its own (each use says why)."""
   env = dict(os.environ, JAX_PLATFORMS="cpu",
              PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
   return subprocess.run([sys.executable, "evaluate.py", *map(str, args)], cwd=REPO, env=env,
@@ -43,10 +51,11 @@ def evaluate_cli(*args):
 @pytest.mark.slow
 def test_same_command_twice_gives_identical_numbers(workdir, tmp_path):
   results = []
-  for i in range(2):
+  for i in range(2):  # in this process, then in a process of its own (nothing of the first kept)
     out = tmp_path / f"{i}.json"
-    proc = evaluate_cli("--config", "configs/default.py:smoke", "--checkpoint", workdir,
-                        "--dataset", "synthetic_lidar:5", "--json", out)
+    proc = (evaluate_cli, evaluate_subprocess)[i](
+      "--config", "configs/default.py:smoke", "--checkpoint", workdir, "--dataset",
+      "synthetic_lidar:5", "--json", out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "| Dataset" in proc.stdout and "EPE(m)" in proc.stdout and "ms/pair" in proc.stdout
     results.append(json.loads(out.read_text()))
@@ -185,7 +194,8 @@ def copy_run(workdir, tmp_path):
 
 def test_cli_silences_the_reports_of_abandoned_reads():
   """What orbax's abandoned reads leave at exit (a coroutine never awaited, a closed event loop)
-  adds no line after the one-line error (the truncated case below hits it only sometimes)."""
+  adds no line after the one-line error (the truncated case below hits it only sometimes). A
+  subprocess (no jax imported): what the interpreter reports at exit is the subject."""
   code = ("from jaxflow import cli\n"
           "async def read(): pass\n"
           "pending = read()\n"
@@ -253,12 +263,12 @@ def test_cli_bad_checkpoint_is_one_line_and_exit_2(workdir, tmp_path):
   lines = proc.stderr.strip().splitlines()
   assert len(lines) == 1 and "knn: 4 != 8" in lines[0], proc.stderr
   # Truncated arrays: orbax's other reads, abandoned when the restore fails, must not add
-  # tracebacks after the one line.
+  # tracebacks after the one line (a subprocess: they report at garbage collection and exit).
   run, step_dir = copy_run(workdir, tmp_path / "truncated")
   for f in (step_dir / "state").rglob("*"):
     if f.is_file() and f.parent.name == "d":
       f.write_bytes(f.read_bytes()[:7])
-  proc = evaluate_cli("--checkpoint", run, "--dataset", "synthetic_lidar:2")
+  proc = evaluate_subprocess("--checkpoint", run, "--dataset", "synthetic_lidar:2")
   assert proc.returncode == 2
   lines = proc.stderr.strip().splitlines()
   assert len(lines) == 1 and "cannot restore the train state" in lines[0], proc.stderr

@@ -24,6 +24,7 @@ LAYERS = (
   ("jaxflow.evaluation",),
   ("jaxflow.training",),
   ("jaxflow.cli", "jaxflow.inference"),
+  ("jaxflow.predict_log",),  # predict on a list of sweeps
   ("jaxflow.predict", "jaxflow.evaluate", "jaxflow.train", "jaxflow.summary", "jaxflow.import_pvraft"),
   ("jaxflow.nsfp",),  # predict with another default
 )

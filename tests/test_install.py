@@ -126,8 +126,9 @@ def test_fresh_install_runs_the_documented_commands(fresh):
   assert Path(where).is_relative_to(venv) and not Path(where).is_relative_to(REPO), where
   inputs = _write_inputs(work)
   commands = _readme_predict_commands()
-  assert [c[0] for c in commands] == ["sweep1.bin", "pc1.ply", "pc1.ply"], commands
-  commands = commands[:2]  # the third, --method nsfp on the same clouds, runs in tests/test_docs.py
+  assert [c[0] for c in commands] == ["sweep1.bin", "s0.bin", "pc1.ply", "pc1.ply"], commands
+  # The log (s0.bin ...) and --method nsfp on the same clouds run in tests/test_docs.py.
+  commands = [commands[0], commands[2]]
   every_module = ("import importlib, pkgutil, jaxflow\n"
                   "names = [m.name for m in pkgutil.walk_packages(jaxflow.__path__, 'jaxflow.')]\n"
                   "for name in names: importlib.import_module(name)\nprint(len(names))")
@@ -222,6 +223,7 @@ def test_every_imported_package_is_declared():
 def test_readme_states_the_commands_ci_runs():
   readme, ci = (REPO / "README.md").read_text(), (REPO / ".ci" / "run").read_text()
   assert 'python -m pip install -q -e ".[dev]"' in ci and "\npython -m pytest -q\n" in ci
+  assert "--durations=25" in (REPO / "pyproject.toml").read_text()  # the slowest tests in CI's log
   commands = ['python3 -m pip install -e ".[dev]"',
               'python3 -m pip install --no-deps "av2==0.3.6" "bucketed-scene-flow-eval==2.0.25"',
               "apt-get install -y chromium",

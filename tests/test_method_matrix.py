@@ -3,8 +3,6 @@ evaluation (evaluator.evaluate_checkpoint, what its main calls) at toy size; and
 crashed on the LiDAR layout (z up) run as a user types them."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,11 +10,14 @@ import pytest
 
 import h5py
 
+from jaxflow import evaluate
 from jaxflow.configs import default
 from jaxflow.evaluation import evaluator
 from jaxflow.methods import registry
 from tests.test_data_opensf import LOGS, make_frame
 from tests.test_data_readers import make_ft3d, random_cloud, write_pair_folder
+
+import commands
 
 REPO = Path(__file__).absolute().parent.parent
 # Each method as small as it goes: an optimiser's steps capped, the network's iterations 1, the
@@ -87,9 +88,10 @@ def test_every_method_on_every_layout(method, layouts, smoke_checkpoint):
 
 
 def _evaluate(*args, tmp_path):
+  """`python evaluate.py ARGS --json OUT`, run in this process (tests/commands.py)."""
   out = tmp_path / "results.json"
-  proc = subprocess.run([sys.executable, "evaluate.py", *args, "--json", str(out)], cwd=REPO,
-                        capture_output=True, text=True, timeout=600)
+  proc = commands.run(evaluate.run, *args, "--json", out, cwd=REPO,
+                      prog=commands.script("evaluate.py"))
   assert proc.returncode == 0, proc.stderr[-3000:]
   return proc.stdout, json.loads(out.read_text())
 

@@ -5,16 +5,17 @@ methods through evaluate.py, jaxflow.predict and jaxflow.nsfp at toy size."""
 import dataclasses
 import json
 import os
-import subprocess
-import sys
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxflow import evaluate, nsfp, predict
 from jaxflow.geometry import rigid
 from jaxflow.methods import optimise, registry
 from jaxflow.refine import optimiser, rigid_clusters
+
+import commands
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -141,32 +142,27 @@ def test_settings_reject_bad_values():
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-  """The command lines at toy size, started at once and collected."""
+  """The command lines at toy size, run in this process one after another (tests/commands.py)."""
   d = tmp_path_factory.mktemp("methods")
   rng = np.random.default_rng(5)
   pc1 = rng.uniform(-2, 2, (120, 3)).astype(np.float32)
   np.save(d / "pc1.npy", pc1)
   np.save(d / "pc2.npy", pc1 + [0.2, 0.0, 0.1])
   np.save(d / "bad.npy", pc1[:, :2])
-  py = [sys.executable]
   toy = ["--config.eval.num_points=64", "--config.eval.num_iters=2", "--steps", "15"]
-  eval_args = ["evaluate.py", "--dataset", "synthetic_lidar:1", "--split", "val", *toy]
+  eval_args = ["--dataset", "synthetic_lidar:1", "--split", "val", *toy]
   cases = {
-    "eval_nsfp": py + eval_args + ["--method", "nsfp", "--json", d / "nsfp.json"],  # (optimise:
-    # the same dispatch, jaxflow.methods.registry, with the network of the predict case)
-    "predict_optimise": py + ["-m", "jaxflow.predict", d / "pc1.npy", d / "pc2.npy", "--out",
-                              d / "p_opt.npy", "--iters", "2", "--steps", "15"],
-    "nsfp": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "pc2.npy", "--out", d / "n.npy",
-                  "--steps", "15"],
-    "nsfp_bad": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "bad.npy", "--out", d / "x.npy"],
-    "nsfp_bad_objective": py + ["-m", "jaxflow.nsfp", d / "pc1.npy", d / "pc2.npy", "--out",
-                                d / "y.npy", "--objective", "fast"],
+    "eval_nsfp": (evaluate.run, *eval_args, "--method", "nsfp", "--json", d / "nsfp.json"),
+    # (optimise: the same dispatch, jaxflow.methods.registry, with the network of the predict case)
+    "predict_optimise": (predict.run, d / "pc1.npy", d / "pc2.npy", "--out", d / "p_opt.npy",
+                         "--iters", "2", "--steps", "15"),
+    "nsfp": (nsfp.run, d / "pc1.npy", d / "pc2.npy", "--out", d / "n.npy", "--steps", "15"),
+    "nsfp_bad": (nsfp.run, d / "pc1.npy", d / "bad.npy", "--out", d / "x.npy"),
+    "nsfp_bad_objective": (nsfp.run, d / "pc1.npy", d / "pc2.npy", "--out", d / "y.npy",
+                           "--objective", "fast"),
   }
-  env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
-         "JAX_PLATFORMS": "cpu"}
-  procs = {k: subprocess.Popen(list(map(str, v)), cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True) for k, v in cases.items()}
-  return d, {k: (p.wait(timeout=1200), *p.communicate()) for k, p in procs.items()}
+  done = {k: commands.run(*v, cwd=ROOT) for k, v in cases.items()}
+  return d, {k: (p.returncode, p.stdout, p.stderr) for k, p in done.items()}
 
 
 @pytest.mark.slow

@@ -2,14 +2,12 @@
 jaxflow.inference (the API)."""
 
 import os
-import subprocess
-import sys
 
 import jax
 import numpy as np
 import pytest
 
-from jaxflow import inference
+from jaxflow import inference, predict
 from jaxflow.configs import default
 from jaxflow.data import open_dataset, read_points
 from jaxflow.data.sampling import sample_pair
@@ -17,6 +15,8 @@ from jaxflow.errors import DataError
 from jaxflow.evaluation import export
 from jaxflow.network import checkpointing, train_state
 from jaxflow.network.model import build_model
+
+import commands
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 N1, N2 = 150, 140  # points of the test pair (the smoke model's knn is 8)
@@ -92,7 +92,7 @@ def raw_sweeps(seed=0):
 
 
 def _cli(*args):
-  return [sys.executable, "-m", "jaxflow.predict", *map(str, args)]
+  return list(args)  # predict's arguments, run in this process (commands.run)
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +102,8 @@ def predictor(workdir):
 
 @pytest.fixture(scope="module")
 def runs(files, workdir):
-  """Every command-line case, started at once (each pays jax's import) and collected."""
+  """Every command-line case, run in this process one after another (jaxflow.cli.call: one jax
+  import, the compiled programs shared), as `python -m jaxflow.predict` would run it."""
   ck = ["--checkpoint", workdir]
   net = ck + ["--method", "network"]  # the API's default (the command's is optimise)
   d = files
@@ -152,14 +153,10 @@ def runs(files, workdir):
     "config_smoke": _cli(d / "big.npy", d / "pc2.npy", "--out", d / "flow_cfg.npy", *net,
                          "--config", os.path.join(ROOT, "configs", "default.py") + ":smoke"),
   }
-  env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
-         "JAX_PLATFORMS": "cpu"}
-  procs = {k: subprocess.Popen(v, cwd=d, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True) for k, v in cases.items()}
   out = {}
-  for k, p in procs.items():
-    stdout, stderr = p.communicate(timeout=1200)
-    out[k] = (p.returncode, stdout, stderr)
+  for k, args in cases.items():
+    done = commands.run(predict.run, *args, cwd=d)
+    out[k] = (done.returncode, done.stdout, done.stderr)
   return out
 
 

@@ -4,18 +4,18 @@ predict_flow) and from predict's command line (--method.lidar.FIELD, --print_con
 import dataclasses
 import os
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
-from jaxflow import inference
+from jaxflow import evaluate, inference, predict as predict_command
 from jaxflow.data import synthetic_sweep as ss
 from jaxflow.errors import ConfigError, DataError
 from jaxflow.lidar import ego, settings as lidar_settings, sweep
 from jaxflow.methods import lidar as lidar_method, registry
 from jaxflow.runtime import configfile
+
+import commands
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m.
@@ -86,16 +86,14 @@ def test_a_ground_setting_reaches_every_ground_mask(pair, flows):
 
 
 def predict(*args):
-  env = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
-         "JAX_PLATFORMS": "cpu"}
-  return subprocess.Popen([sys.executable, "-m", "jaxflow.predict", *map(str, args)], env=env,
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+  """`python -m jaxflow.predict ARGS`, run in this process (tests/commands.py)."""
+  return commands.run(predict_command.run, *args)
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, pair):
-  """predict's command lines, all at once: --lidar with and without --sweep overrides,
-  --print_config, an unknown field."""
+  """predict's command lines, one after another in this process: --lidar with and without --sweep
+  overrides, --print_config, an unknown field."""
   d = tmp_path_factory.mktemp("sweeps")
   np.save(d / "a.npy", pair.pc1)
   np.save(d / "b.npy", pair.pc2)
@@ -111,7 +109,7 @@ def runs(tmp_path_factory, pair):
     "other": predict(d / "a.npy", d / "b.npy", "--out", d / "other.npy",
                      "--method.lidar.objects.cell=0.2"),
   }
-  out = {k: (*p.communicate(timeout=600), p.returncode) for k, p in procs.items()}
+  out = {k: (p.stdout, p.stderr, p.returncode) for k, p in procs.items()}
   return d, out
 
 
@@ -253,9 +251,8 @@ def test_every_setting_is_checked_by_its_own_block():
 def test_evaluate_takes_the_lidar_methods_fields():
   """evaluate.py --method lidar --method.lidar.FIELD=V (README): the field set, as --print_config
   lists it; a lidar field with another method is refused."""
-  env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-  run = lambda *args: subprocess.run([sys.executable, "evaluate.py", *args], cwd=ROOT, env=env,
-                                     capture_output=True, text=True, timeout=300)
+  run = lambda *args: commands.run(evaluate.run, *args, cwd=ROOT,  # `python evaluate.py ARGS`
+                                   prog=commands.script("evaluate.py"))
   given = run("--method", "lidar", "--method.lidar.objects.person.size=0.9", "--print_config")
   assert given.returncode == 0, given.stderr[-2000:]
   assert "method.lidar.objects.person.size = 0.9  # " in given.stdout

@@ -6,8 +6,6 @@ train.py calls) from a stage-1 checkpoint of their own config written without tr
 stage 1 is the same code for every row and costs a compilation each)."""
 
 import json
-import subprocess
-import sys
 
 import jax
 import numpy as np
@@ -15,10 +13,13 @@ import pytest
 from flax import traverse_util
 
 from conftest import ROOT
+from jaxflow import train
 from jaxflow.configs import ablation, paper
 from jaxflow.network import checkpointing, train_state
 from jaxflow.network.model import build_model
 from jaxflow.training import trainer
+
+import commands
 
 TOY_FIELDS = {"data.dataset": "synthetic_lidar:8", "data.num_points": 256, "train.num_steps": 2,
               "train.checkpoint_every": 2, "eval.dataset": ""}
@@ -39,8 +40,9 @@ def flat(tree):
 
 
 def train_py(config, workdir, *flags):
-  done = subprocess.run([sys.executable, "train.py", f"--config={config}", f"--workdir={workdir}",
-                         *TOY, *flags], cwd=ROOT, capture_output=True, text=True)
+  """`python train.py ...` as typed, run in this process (tests/commands.py)."""
+  done = commands.run(train.run, f"--config={config}", f"--workdir={workdir}", *TOY, *flags,
+                      cwd=ROOT, prog=commands.script("train.py"))
   assert done.returncode == 0, done.stderr[-3000:]
   return done.stderr
 

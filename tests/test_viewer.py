@@ -15,9 +15,11 @@ import sys
 import numpy as np
 import pytest
 
+from jaxflow import predict
 from jaxflow.errors import ConfigError
 from jaxflow.viz import viewer
 
+import commands
 import zup_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -80,12 +82,9 @@ def test_predict_renders_a_page_that_chromium_draws(tmp_path):
   scene = zup_scene.sweep_pair()
   np.save(tmp_path / "sweep1.npy", scene.pc1)
   np.save(tmp_path / "sweep2.npy", scene.pc2)
-  env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
-         "JAX_PLATFORMS": "cpu"}
-  run = subprocess.run([sys.executable, "-m", "jaxflow.predict", "sweep1.npy", "sweep2.npy",
-                        "--lidar", "--method", "network", "--max_points", "2048", "--iters", "4",
-                        "--out", "flow.npy", "--render", "flow.html"],
-                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+  run = commands.run(predict.run, "sweep1.npy", "sweep2.npy", "--lidar", "--method", "network",
+                     "--max_points", "2048", "--iters", "4", "--out", "flow.npy", "--render",
+                     "flow.html", cwd=tmp_path)  # `python -m jaxflow.predict ...`, in this process
   assert run.returncode == 0, run.stderr
   page = (tmp_path / "flow.html").read_text()
   assert "<html" in page and "plotly" in page and "src=\"http" not in page  # self-contained
@@ -112,6 +111,7 @@ def test_predict_checks_the_viewer_extra_before_the_work(tmp_path):
   np.save(tmp_path / "a.npy", scene.pc1)
   np.save(tmp_path / "b.npy", scene.pc2)
   root = pathlib.Path(__file__).absolute().parent.parent
+  # A subprocess: plotly blocked on its path (this process may have imported it already).
   env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "blocked"), str(root)])}
   proc = subprocess.run([sys.executable, "-m", "jaxflow.predict", str(tmp_path / "a.npy"),
                          str(tmp_path / "b.npy"), "--lidar", "--out", str(tmp_path / "f.npy"),

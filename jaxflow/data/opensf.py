@@ -33,8 +33,12 @@ pc1 = lidar(t0)[:, :3], pc2 = lidar(t1)[:, :3]. Options after the folder (", key
     apart from the data: the flow of valid background points is exactly the ego-motion flow of
     the ego-frame points, so in an ego-frame file |flow - (ego_motion p - p)| is float rounding
     while in a sensor-frame file it is ~ the ego's rotation x the sensor's offset (a frame whose
-    ego turns by at least 0.03 degrees decides); a file none of whose frames decides is an error
-    asking for lidar=. lidar=sensor needs calibration=AV2_DIR, the AV2 split the file was made
+    ego turns by at least 0.03 degrees decides); a file none of whose frames decides (an ego
+    that stood still or drove straight all through the log) is
+    read as the ego frame, with a warning: what every OpenSceneFlow converter but AV2's since
+    2bd9036 writes (and the flows of the two frames then differ by under 0.03 degrees x the
+    sensor's offset, ~1 mm); lidar=ego says so without the warning. lidar=sensor needs
+    calibration=AV2_DIR, the AV2 split the file was made
     from (AV2_DIR/<log>/calibration/egovehicle_SE3_sensor.feather, its up_lidar row; needs
     pyarrow): the clouds are moved into the ego frame with it, so every frame of a pair is the
     ego frame whichever version the file is.
@@ -46,7 +50,9 @@ is FILE:TIMESTAMP (`sweep_id` gives av2's (log_id, timestamp_ns)). Errors name t
 group. A split is a subfolder (train, val, test; default train).
 """
 
+import json
 import pathlib
+import warnings
 
 import h5py
 import numpy as np
@@ -165,6 +171,27 @@ class OpenSceneFlow(Dataset):
     return Pair(**arrays, mask=mask, foreground=category != 0, category=category,
                 ego_xy=np.ascontiguousarray(pc1[:, :2]), name=f"{path}:{k0}")
 
+  def instances(self, i):
+    """The labelled objects of pair i where the file carries them (`flow_instance_id`: 1 + the
+    track's index in the file attribute `instances`, rows [uuid, label, category]; 0 none), else
+    None: (N int track number per point of load(i)'s pc1, [(uuid, label, category)])."""
+    path, k0, _ = self.pairs[i]
+    try:
+      with h5py.File(path, "r") as f:
+        if "flow_instance_id" not in f[k0] or "instances" not in f.attrs:
+          return None
+        frame = _read(f, path, k0, _LABELLED + (("eval_mask",) if "eval_mask" in f[k0] else ()))
+        ids = np.asarray(f[k0]["flow_instance_id"][()]).astype(np.int64).reshape(-1)
+        table = _instance_table(f.attrs["instances"], path)
+        frame["lidar"] = _apply(self._lidar_to_ego(f, path), frame["lidar"])
+    except OSError as e:
+      raise DataError(path, f"group {k0}: unreadable ({e})") from None
+    if len(ids) != len(frame["lidar"]) or ids.min(initial=0) < 0 or ids.max(initial=0) > len(table):
+      raise DataError(path, f"group {k0}: flow_instance_id has shape {ids.shape} and values up to "
+                      f"{ids.max(initial=0)}, expected {len(frame['lidar'])} values in 0 .. "
+                      f"{len(table)} (the attribute instances' rows)")
+    return ids[self._keep(frame, path, k0)], table
+
   def _keep(self, frame, path, key) -> np.ndarray:
     points = frame["lidar"]
     finite = np.isfinite(points).all(1)
@@ -198,6 +225,12 @@ class OpenSceneFlow(Dataset):
       frame = self.options["lidar"]
       if frame == "auto":
         frame = _detect_lidar_frame(f, path)
+        if frame is None:
+          warnings.warn(f"{path}: no frame turns enough (0.03 degrees) to tell the frame of "
+                        "'lidar'; read as the ego frame (OpenSceneFlow's converters write it, but "
+                        "AV2's extract_av2.py since its commit 2bd9036 the sensor frame: then give "
+                        "lidar=sensor,calibration=AV2_DIR; lidar=ego: no warning)", stacklevel=2)
+          frame = "ego"
         if frame == "sensor" and not self.options["calibration"]:
           raise DataError(path, "'lidar' is in the sensor frame (OpenSceneFlow's extract_av2.py "
                           "since its commit 2bd9036; its flow is in the ego frame) and the file "
@@ -236,6 +269,20 @@ def _challenge_points(frame) -> np.ndarray:
   return ~frame["ground_mask"] & (np.abs(frame["lidar"][:, :2]) <= CHALLENGE_BOX_M).all(1)
 
 
+def _instance_table(value, path) -> list[tuple[str, str, str]]:
+  """The file attribute `instances` (JSON text, or an array of rows) as [(uuid, label, category)]."""
+  if isinstance(value, bytes):
+    value = value.decode()
+  try:
+    rows = json.loads(value) if isinstance(value, str) else np.asarray(value).tolist()
+    table = [tuple(v.decode() if isinstance(v, bytes) else str(v) for v in row) for row in rows]
+  except (ValueError, TypeError) as e:
+    raise DataError(path, f"attribute instances: not a list of [uuid, label, category] ({e})") from None
+  if any(len(row) != 3 for row in table):
+    raise DataError(path, "attribute instances: rows must be [uuid, label, category]")
+  return table
+
+
 _LABELLED = ("lidar", "ground_mask", "flow", "flow_is_valid", "flow_category_indices", "ego_motion")
 
 
@@ -245,9 +292,9 @@ def _apply(transform_4x4, points_Nx3) -> np.ndarray:
   return (points_Nx3 @ transform_4x4[:3, :3].T + transform_4x4[:3, 3]).astype(np.float32)
 
 
-def _detect_lidar_frame(f, path) -> str:
+def _detect_lidar_frame(f, path) -> str | None:
   """"ego" or "sensor" from the first labelled frame of `f` whose ego-motion turns by at least
-  DECISIVE_ROTATION (module docstring); a DataError when none decides."""
+  DECISIVE_ROTATION (module docstring); None when none decides."""
   keys = _sorted_keys(f, path)
   for k0 in (k for k in keys[:-1] if "flow" in f[k]):
     frame = _read(f, path, k0, _LABELLED)
@@ -267,10 +314,7 @@ def _detect_lidar_frame(f, path) -> str:
       return "ego"
     if residual >= 0.3 * angle:  # the sensor sits metres from the ego origin
       return "sensor"
-  raise DataError(path, "cannot tell the frame of 'lidar' (OpenSceneFlow's extract_av2.py stores "
-                  "the up_lidar sensor frame since its commit 2bd9036, the ego frame before; no "
-                  "frame of this file turns enough to tell): give lidar=ego, or lidar=sensor with "
-                  "calibration=AV2_DIR")
+  return None
 
 
 def read_up_lidar_extrinsic(av2_dir, h5_path) -> np.ndarray:

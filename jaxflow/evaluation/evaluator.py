@@ -10,7 +10,8 @@ with its compilation (what a user waits for the first flow; the first pair at ba
 `ms_per_pair`, the steady state: the other pairs' (a new shape among them compiled before its
 clock starts; with one batch only, that batch run again once compiled). Evaluation point sampling
 is seeded, so the same call gives the same numbers. Batches are streamed (memory does not
-grow with the number of pairs), with a progress bar in pairs/s on stderr. In a run over many
+grow with the number of pairs), with a bar in pairs/s on a terminal (stderr) and, in a log, a
+line every 10 s (jaxflow.refine.progress.Working). In a run over many
 processes (jaxflow.runtime.distributed) each process evaluates every P-th batch and the sums are reduced.
 `on_batch` callbacks (batch, predicted flow) see every batch: evaluate.py's --render_dir and
 --save_flows.
@@ -34,6 +35,7 @@ from jaxflow.evaluation.metrics import METRICS, ThreeWayAverage, per_pair_metric
 from jaxflow.geometry import frames
 from jaxflow.methods import registry
 from jaxflow.network import checkpointing
+from jaxflow.refine import progress
 
 # The convergence counts of an optimising method, summed over pairs (names of `_Totals`).
 CONVERGENCE = ("optimised", "non_finite", "early_stopped", "steps")
@@ -111,13 +113,26 @@ class _Timer:
     self.totals["timed_pairs"] += pairs
     return pred
 
-  def finish(self):
-    """The steady state of a run of one batch: that batch again, compiled."""
+  def finish(self) -> bool:
+    """The steady state of a run of one batch: that batch again, compiled (True when so)."""
     if self.again:
       pc1, pc2, pairs = self.again
       _, seconds = _timed(self._compiled(pc1, pc2, warm=False), *self.args, pc1, pc2)
       self.totals["seconds"] += seconds
       self.totals["timed_pairs"] += pairs
+    return bool(self.again)
+
+
+def _shown(total):
+  """(bar, working, done): the pairs' bar on a terminal, in a log a line every progress.EVERY_S
+  seconds (progress.Working), by process 0; `done[0]`: the pairs so far (a disabled bar counts
+  none)."""
+  primary, done = distributed.is_primary(), [0]
+  bar = tqdm(total=total, desc="evaluating", unit="pair", file=sys.stderr, leave=False,
+             dynamic_ncols=True, mininterval=1.0, disable=None if primary else True)
+  working = progress.Working("evaluating", lambda: f"{done[0]}/{total} pairs",
+                             progress=False if not primary or not bar.disable else None)
+  return bar, working, done
 
 
 def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair=None,
@@ -136,9 +151,8 @@ def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair
   timer = _Timer(predict, args, {} if compiled is None else compiled, warm_up, totals)
   three_way = ThreeWayAverage()
   official = av2_eval.Official(on_pair)
-  bar = tqdm(total=total, desc="evaluating", unit="pair", file=sys.stderr, leave=False,
-             dynamic_ncols=True, mininterval=1.0, disable=not distributed.is_primary())
-  with bar:
+  bar, working, done = _shown(total)
+  with bar, working:
     for batch in batches:
       valid = np.asarray(batch["pair_valid"], np.float64)
       pred = timer(jnp.asarray(batch["pc1"]), jnp.asarray(batch["pc2"]), valid.sum())
@@ -159,7 +173,8 @@ def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair
       for callback in on_batch:
         callback(batch, np.asarray(pred))
       bar.update(int(valid.sum()))
-  timer.finish()
+      done[0] += int(valid.sum())
+  rerun = timer.finish()
   totals = totals.reduced()
   three_way.reduce(distributed.sum_over_processes)
   official.reduce(distributed.sum_over_processes)
@@ -169,6 +184,7 @@ def _run(predict, args, batches, compiled=None, total=None, on_batch=(), on_pair
   results = {k: totals[k] / pairs for k in METRICS}
   results.update(pairs=pairs, first_pair_s=totals["first_seconds"] / totals["first_pairs"],
                  ms_per_pair=1000.0 * totals["seconds"] / totals["timed_pairs"],
+                 steady="rerun" if rerun else "others",  # ms_per_pair: one batch run again
                  **three_way.results(), **official.results())
   if totals["optimised"]:
     optimised = totals["optimised"]
@@ -265,7 +281,8 @@ def evaluate_zero_flow(dataset, *, num_points: int | None, batch_size: int, seed
 
 def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: str | None = None,
                         split: str | None = None, model_fields=(), method: str = "network",
-                        method_settings=None, on_batch=(), submission_dir=None) -> dict:
+                        method_settings=None, on_batch=(), submission_dir=None,
+                        on_start=None) -> dict:
   """Evaluates a checkpoint (workdir, checkpoints folder or step folder; None: the shipped one).
 
   The model comes from the checkpoint (checkpointing.load_for_inference); `config.eval` sets points
@@ -273,7 +290,8 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
   (jaxflow.methods.registry; `method_settings` default registry.settings(method)): nsfp needs no
   checkpoint. The results also name the dataset, split, checkpoint and step. `submission_dir`: the
   AV2 challenge's files of every pair (jaxflow.evaluation.submission), summarised under
-  "submission".
+  "submission". `on_start()`: called once the model and the dataset are open, before the first pair
+  (evaluate.py's notes: none before a checkpoint's one-line error).
   """
   check_no_test_time(config.eval)
   chosen = method_settings if method_settings is not None else registry.settings(method)
@@ -288,6 +306,8 @@ def evaluate_checkpoint(checkpoint, config: ml_collections.ConfigDict, dataset: 
     checkpoint = checkpoint or checkpointing.SHIPPED_CHECKPOINT
   ds = open_dataset(dataset, split=split)
   writer = submission_dir and submission.SubmissionWriter(submission_dir, config.eval.num_points, ds)
+  if on_start is not None:
+    on_start()
   results = evaluate(model, params, ds, num_points=config.eval.num_points or None,
                      batch_size=config.eval.batch_size, num_iters=config.eval.num_iters,
                      refine=refine, seed=config.eval.seed, method=method,

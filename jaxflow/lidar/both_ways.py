@@ -24,7 +24,7 @@ from concurrent import futures
 import numpy as np
 
 from jaxflow.geometry import neighbours, rigid
-from jaxflow.lidar import judge, objects
+from jaxflow.lidar import judge, objects, parts
 from jaxflow.lidar.settings import DEFAULTS
 
 
@@ -91,9 +91,15 @@ def _offer(forward, backward, idx2, motion2: rigid.Motion, above1, s):
     return  # pc1 did not see it there (hidden, or out of its rings)
   truncate = judge.truncation(pts, pts, s)
   fit = ("both ways", motion, truncate)
-  if not forward.scene.plausible(motion, pts) or objects.onto_what_stood(forward.scene, pts, fit):
+  if not forward.scene.plausible(motion, pts) or parts.onto_what_stood(forward.scene, pts, fit):
     return
   now = back.apply(pts + forward.flow[idx])  # the forward answer, frame 1
+  # Where the forward answer is standing still, the evidence of the pair's noise may decide too
+  # (a slow mover: judge.Evidence).
+  still = np.allclose(now, pts, atol=1e-6)
+  evidence = forward.scene.evidence
   if judge.clearly_better(forward.scene.costs(now, truncate),
                           forward.scene.costs(motion.apply(pts), truncate), s):
     forward.take_over(idx, fit)
+  elif still and evidence is not None and evidence.beats_still(pts, motion, truncate, s):
+    forward.take_over(idx, ("both ways" + objects.EVIDENCE, motion, truncate))

@@ -21,7 +21,9 @@ object moved farther than its own width must leave a place pc2 shows empty and l
 nothing (each start and each of the search's best shifts is held to it). A group kept still may
 join a mover to what stands beside it (a car passing parked cars): the connected cells of its
 unexplained points are fitted in turn, each kept only where it leaves a place pc2 shows empty for
-one pc1 showed empty. What pc2 saw is judged from its sensor's place (`sensor2`). Points no
+one pc1 showed empty. A slow mover, which leaves no empty place, may be kept by the pair's own
+evidence instead (jaxflow.lidar.slow, when `judge.evidence` is set). What pc2
+saw is judged from its sensor's place (`sensor2`). Points no
 object claims keep the ego-motion. All z up, frame 1. The names: fields of `settings`,
 jaxflow.lidar.settings.Objects.
 """
@@ -31,7 +33,7 @@ import dataclasses
 import numpy as np
 
 from jaxflow.geometry import groups, neighbours, registration, rigid, visibility as views
-from jaxflow.lidar import along, ego, grid_search, judge, person
+from jaxflow.lidar import along, ego, grid_search, judge, parts, person, slow
 from jaxflow.lidar.settings import DEFAULTS
 
 
@@ -76,14 +78,14 @@ def _moving_parts(scene, points_Kx3, motion, truncate) -> np.ndarray:
   `part.cell`, without bridging, and keep still every part of `min_points` that standing still
   explains clearly better than the motion (the test the motion passed against it)."""
   s = scene.settings
-  parts = groups.cell_components(points_Kx3, np.ones(len(points_Kx3), bool), s.part.cell,
-                                 bridge=False)
+  pieces = groups.cell_components(points_Kx3, np.ones(len(points_Kx3), bool), s.part.cell,
+                                  bridge=False)
   keep = np.ones(len(points_Kx3), bool)
-  if parts.count < 2:
+  if pieces.count < 2:
     return keep
   still = scene.costs(points_Kx3, truncate)
   moving = scene.costs(motion.apply(points_Kx3), truncate)
-  for _, mine in parts.members():
+  for _, mine in pieces.members():
     if len(mine) >= s.min_points and judge.clearly_better(moving[mine], still[mine], s):
       keep[mine] = False
   return keep
@@ -111,6 +113,7 @@ class _Scene:
   search: float  # m: an object's translation search, +- this (a frame's worth of search.per_s)
   max_yaw_deg: float  # degrees an object may turn in a frame
   settings: object  # the objects block
+  evidence: object = None  # pc2's planes and the pair's noise (judge.Evidence; None: margins only)
 
   def costs(self, points_Kx3, truncate: float) -> np.ndarray:
     return judge.costs(self.tree, points_Kx3, self.visibility, self.ego_motion, truncate)
@@ -130,54 +133,6 @@ def _is_structure(idx, height_N, pc1_Nx3, s) -> bool:
           or (height_N[idx] > s.object_top).mean() > s.max_high)
 
 
-def _novelty(scene, pts_Kx3, motion, truncate) -> float:
-  """Share of pc2's points that an object moved by `motion` lands on (within `truncate`) which
-  pc1 does not explain where they are: a mover lands where it was not; a piece of still structure
-  slid onto more of that structure lands on what pc1 saw there too."""
-  d, j = scene.tree.nearest(motion.apply(pts_Kx3), truncate)
-  j = np.unique(j[np.isfinite(d)])
-  if not len(j):
-    return 0.0
-  return float(scene.new[j].mean())
-
-
-def _new_place(scene, pts_Kx3, fit) -> bool:
-  """Whether a part's motion takes it from a place pc2 shows empty (mean cost >= `part.vacated`)
-  to one pc1 showed empty (`_novelty`), and the part is object-sized (`part.size` wide)."""
-  s = scene.settings
-  _, motion, truncate = fit
-  return bool(judge.mean(scene.costs(pts_Kx3, truncate), s.judge.min_seen) >= s.part.vacated
-              and np.ptp(pts_Kx3[:, :2], axis=0).max() >= s.part.size
-              and _novelty(scene, pts_Kx3, motion, truncate) >= s.novelty)
-
-
-def onto_what_stood(scene, pts_Kx3, fit) -> bool:
-  """Whether a motion takes an object farther than its own width onto what pc1 saw there too
-  (under `novelty` of the pc2 points it lands on new), or from a place pc2 still shows filled
-  (standing still's mean cost under `part.vacated`): a thing slid onto its neighbours. A mover
-  that far has left its own place, so pc2 sees it empty, and where it lands pc1 saw nothing."""
-  _, motion, truncate = fit
-  centre = pts_Kx3.mean(0)
-  shift = np.linalg.norm(motion.apply(centre[None])[0, :2] - centre[:2])
-  if shift <= np.ptp(pts_Kx3[:, :2], axis=0).max():
-    return False
-  s = scene.settings
-  return (judge.mean(scene.costs(pts_Kx3, truncate), s.judge.min_seen) < s.part.vacated
-          or _novelty(scene, pts_Kx3, motion, truncate) < s.novelty)
-
-
-def _unexplained_parts(idx, unexplained_N, pc1_Nx3, s):
-  """Indices of each group of a group's unexplained points (connected cells, no bridging, with
-  every point of the group in their cells) of `min_points` or more, but at most `part.share` of
-  the group (a larger one is the group again)."""
-  seeds = unexplained_N[idx]
-  if seeds.sum() < s.min_points:
-    return []
-  parts = groups.cell_components(pc1_Nx3[idx], seeds, s.cell, bridge=False)
-  return [idx[mine] for _, mine in parts.members()
-          if s.min_points <= len(mine) <= s.part.share * len(idx)]
-
-
 def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   """(start name, motion, truncation) of an object's best motion, or None when standing still
   is not clearly beaten. `given_Kx3`: where a caller's flow takes the points (frame 1), or None;
@@ -188,7 +143,7 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   shuffled = pts_Kx3[rng.permutation(len(pts_Kx3))]
   sample, judged = shuffled[0::2][:s.search.points], shuffled[1::2]
   truncate = judge.truncation(pts_Kx3, judged, s)
-  allowed = lambda m: scene.plausible(m, judged) and not onto_what_stood(
+  allowed = lambda m: scene.plausible(m, judged) and not parts.onto_what_stood(
     scene, judged, (None, m, truncate))
   shifts = grid_search.best_shifts(scene.tree, sample, scene.search, s)
   starts = {"search": next((m for m in shifts if allowed(m)), shifts[0])}  # the best allowed
@@ -207,12 +162,20 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
     best = along.adopt(scene, judged, truncate, vote, (best, still_costs),
                        lambda m: _bev_icp(scene.target, sample, m, s))
   best_name, best, best_costs = best
-  if best_name == "still" or not judge.clearly_better(still_costs, best_costs, s):
+  if best_name == "still":
     return None
+  if not judge.clearly_better(still_costs, best_costs, s):
+    if not slow.evident(scene, judged, best, truncate):
+      return None
+    best_name += slow.EVIDENCE  # what the margins alone leave still: refined on its faces below
   if best_name == "search" and not grid_search.halves_agree(scene.tree, judged, best,
                                                                scene.search, s):
     return None
   refit = _bev_icp(scene.target, pts_Kx3, best, s)  # chosen on halves: now fitted on all points
+  if best_name.endswith(slow.EVIDENCE):  # a slow mover: its faces say where
+    plane_fit = scene.evidence.refine(pts_Kx3, refit, truncate, s)
+    if plane_fit is not refit and scene.plausible(plane_fit, pts_Kx3):
+      return best_name, plane_fit, truncate
   if best_name.endswith("along"):  # a flat side: the refit slides along it, the ends say where
     refit = along.settle(scene.target, pts_Kx3, refit, vote, s)
   if scene.plausible(refit, pts_Kx3) and judge.mean(
@@ -252,9 +215,11 @@ def _scene(pc1, pc2_Mx3, ground1, ground2_M, ego_motion, s, ego_settings, rate, 
   before = ego.Target(pc1, ground1, ego_settings)  # pc1 seen from above
   visibility = views.View(pc2_Mx3, "z", s.judge.azimuth_bins, s.judge.elevation_bins,
                           s.judge.hidden, sensor2)
-  return _Scene(target, neighbours.Tree(above2), _per_point(before, above2) > s.unexplained,
+  tree = neighbours.Tree(above2)
+  return _Scene(target, tree, _per_point(before, above2) > s.unexplained,
                 along.before(pc1, before, ~ground1, above2, s.unexplained), visibility,
-                ego_motion, s.search.per_s / rate, s.max_yaw_deg_per_s / rate, s)
+                ego_motion, s.search.per_s / rate, s.max_yaw_deg_per_s / rate, s,
+                judge.Evidence(tree, visibility, ego_motion) if s.judge.evidence else None)
 
 
 @dataclasses.dataclass
@@ -313,8 +278,13 @@ class _Pass:
     pts = self.pc1[idx]
     if self.surface is not None:
       best = _on_the_ground(best, pts, self.surface)
-    parts = _moving_parts(self.scene, pts, best, truncate)
-    idx, pts = idx[parts], pts[parts]
+    moving = _moving_parts(self.scene, pts, best, truncate)
+    if name.endswith(slow.EVIDENCE):
+      # What stands beside a slow mover (joined to it from above) stays still.
+      moving &= ~self.scene.evidence.against(pts, best, truncate, self.scene.settings)
+    idx, pts = idx[moving], pts[moving]
+    if not len(idx):
+      return
     world = best.then(self.scene.ego_motion)
     self.flow[idx] = world.flow(pts)
     self.moved.append((len(idx), best.translation, best.yaw_deg, name))
@@ -357,22 +327,19 @@ def object_pass(pc1_Nx3, pc2_Mx3, ground1_N, ground2_M, ego_motion: rigid.Motion
   found = object_groups(pc1, np.where(ground1, -1.0, height), settings=s).without(ground1)
   given = None if start_flow_Nx3 is None else ego_motion.inverse().apply(
     pc1 + np.asarray(start_flow_Nx3, np.float64))
-  run = _Pass(scene, pc1, ground1, height, _per_point(scene.target, pc1) > s.unexplained, given,
-              surface, seed, flow, groups=found.count)
+  off = _per_point(scene.target, pc1)  # m from ego-compensated pc2, from above
+  run = _Pass(scene, pc1, ground1, height, off > s.unexplained, given, surface, seed, flow,
+              groups=found.count)
+  if scene.evidence is not None:
+    slow.measure_noise(scene, pc1[~ground1 & ~run.unexplained], s)
   still = []
   for _, idx in found.members():
     fit = run.fit(idx)
-    if fit is not None and onto_what_stood(scene, pc1[idx], fit):
+    if fit is not None and parts.onto_what_stood(scene, pc1[idx], fit):
       fit = None
     if fit is None:
       still.append(idx)
     else:
       run.apply(idx, fit)
-  # A group kept still may join a mover to what stands beside it (a car passing parked cars): its
-  # unexplained points' own groups are fitted in turn.
-  for idx in still:
-    for part in _unexplained_parts(idx, run.unexplained, pc1, s):
-      fit = run.fit(part)
-      if fit is not None and _new_place(scene, pc1[part], fit):
-        run.apply(part, fit)
+  parts.fit_parts(run, still, off)
   return run

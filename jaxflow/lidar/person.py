@@ -1,7 +1,7 @@
 """A walking person: a group shaped as one (narrow from above, upright, a person's height) moves
 5-17 cm a frame, under what the ego-motion leaves unexplained, so it first gets the shift of the
 centroid of pc2's points around it (jaxflow.lidar.objects), kept when it beats standing still
-clearly.
+clearly: by the margins, or by the evidence of the pair's own noise (judge.Evidence).
 
     if is_person(idx, pc1_Nx3, height_N, settings):
       fit = fit_person(scene, pc1_Nx3[idx])   # ("person", shift, truncation) or None
@@ -51,6 +51,8 @@ def fit_person(scene, pts_Kx3):
   s = scene.settings
   truncate = judge.truncation(pts_Kx3, pts_Kx3, s)
   still = scene.costs(pts_Kx3, truncate)
-  if not judge.clearly_better(still, scene.costs(shift.apply(pts_Kx3), truncate), s):
-    return None
-  return "person", shift, truncate
+  if judge.clearly_better(still, scene.costs(shift.apply(pts_Kx3), truncate), s):
+    return "person", shift, truncate
+  if scene.evidence is not None and scene.evidence.beats_still(pts_Kx3, shift, truncate, s):
+    return "person (evidence)", shift, truncate
+  return None

@@ -200,9 +200,18 @@ class Part:
   share: float = 0.9  # a part holding more of its group is the group again: not fitted
   vacated: float = 0.6  # a part's least mean cost standing still (pc2 shows its place empty)
   size: float = 1.0  # m: a part's least width seen from above
+  # A group kept still is also split at `cell` of the objects without bridging (a car creeping
+  # beside a parked one is one group bridged, two apart), each piece fitted as a part; a part that
+  # does not leave its place (a slow mover) is kept on the judge's evidence instead (Judge.evidence;
+  # off by default with it)
+  split: bool = False
+  # m from ego-compensated pc2 (from above): with the evidence, the seeds of a kept-still group's
+  # parts (a person walking 0.1-0.15 m a frame leaves few points beyond `unexplained`)
+  seeds: float = 0.08
 
   def __post_init__(self):
-    _need(self, "lidar objects.part.", _NUMBER, "cell", "share", "vacated", "size")
+    _need(self, "lidar objects.part.", _NUMBER, "cell", "share", "vacated", "size", "seeds")
+    _need(self, "lidar objects.part.", _FLAG, "split")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -299,11 +308,26 @@ class Judge:
   hidden: float = 0.5  # m behind pc2's return in its direction: hidden
   hidden_fit: float = 0.45  # mean cost a motion must reach where pc2 hides still's place
   min_seen: float = 0.3  # share visible in pc2 below which a motion is refused
+  # Evidence that grows with the points (jaxflow.lidar.judge.Evidence): a motion also replaces
+  # standing still where the point-to-plane residuals it saves, in units of the pair's own noise
+  # (measured on its static world), add up to `evidence` (2 x the log-likelihood ratio of Gaussian
+  # noise; each point's residual capped at `noise_cap` noises) at `significance` standard errors:
+  # a car creeping 0.2 m a frame with 1,000 points is then overwhelming, 5 points are not.
+  # 0 (the default): margins alone. 150 with part.split: PandaSet's creeping cars move, but parked
+  # objects of its driving run too (benchmarks/REAL_SWEEPS.md, "Slow movers"): off until mended.
+  evidence: float = 0.0
+  noise_cap: float = 3.0  # noises: a point's point-to-plane residual is capped at this
+  noise_floor: float = 0.01  # m: the noise is at least this
+  noise_points: int = 4000  # static points (explained from above) the noise is measured on
+  # m: the evidence decides only motions of an object's centre this short, which leave no empty
+  # place (a faster mover's old place is empty: the margins see it)
+  slow: float = 0.5
 
   def __post_init__(self):
     _need(self, "lidar objects.judge.", _NUMBER, "truncate", "spacings", "max_truncate", "margin",
-          "relative_margin", "significance", "hidden", "hidden_fit", "min_seen")
-    _need(self, "lidar objects.judge.", _COUNT, "azimuth_bins", "elevation_bins")
+          "relative_margin", "significance", "hidden", "hidden_fit", "min_seen", "evidence",
+          "noise_cap", "noise_floor", "slow")
+    _need(self, "lidar objects.judge.", _COUNT, "azimuth_bins", "elevation_bins", "noise_points")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -16,7 +16,7 @@ from jaxflow.errors import ConfigError
 from jaxflow.geometry import groups, neighbours, registration
 from jaxflow.geometry.visibility import View
 from jaxflow.lidar import ego
-from jaxflow.refine import bodies, optimiser, rigid_clusters
+from jaxflow.refine import bodies, optimiser, progress, rigid_clusters
 from jaxflow.methods.interface import Method
 
 
@@ -137,12 +137,16 @@ class Optimise:
 
 
 class _Clock:
-  """Seconds of each stage into `seconds` (None: no clock, nothing waited for)."""
+  """Seconds of each stage into `seconds` (None: no clock, nothing waited for), and the flow after
+  each of STAGES into `flows` (None: not kept; a stage's last call is its flow)."""
 
-  def __init__(self, seconds: dict | None):
-    self.seconds, self.last = seconds, time.perf_counter()
+  def __init__(self, seconds: dict | None, flows: dict | None = None):
+    self.seconds, self.flows, self.last = seconds, flows, time.perf_counter()
 
   def __call__(self, stage: str, *arrays):
+    progress.stage(f"{stage} done")  # what a log's progress line says (jaxflow.refine.progress)
+    if self.flows is not None and stage in STAGES:
+      self.flows[stage] = arrays[0]
     if self.seconds is not None:
       jax.block_until_ready(arrays)
       now = time.perf_counter()
@@ -150,26 +154,39 @@ class _Clock:
       self.last = now
 
 
-def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=None):
+STAGES = ("descent", "rigid clusters", "polish", "rigid bodies", "world")
+
+
+def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=None, flows=None,
+                  resume=None):
   """The `optimise` method's flow from a starting flow (the network's), and the info of its first
   optimisation (jaxflow.refine.optimiser.optimise). Driven from Python: the searches (pc1's kNN
   graph, the distance grid, the polish's nearest points) run between compiled stages, so that no
   compiled program calls back to the host (JAX's persistent compilation cache keeps only such
   programs).
-  `seconds`: a dict that gets each stage's seconds (each stage then waited for: a profile)."""
-  clock = _Clock(seconds)
+  `seconds`: a dict that gets each stage's seconds (each stage then waited for: a profile).
+  `flows`: a dict that gets the flow after each stage run (STAGES). `resume`: (a stage, its flow)
+  from an earlier call: that stage and those before it are not run again (info None); variants of
+  the later stages then share the earlier ones (benchmarks/optimise_changes.py)."""
+  after = -1 if resume is None else STAGES.index(resume[0])
+  runs = lambda stage: STAGES.index(stage) > after
+  clock = _Clock(seconds, flows)
   clock("start", init_BxNx3, pc1_BxNx3, pc2_BxMx3)
   guarded = Guarded(pc1_BxNx3, pc2_BxMx3, chosen.guard)
   search = chosen.descent.search
-  grids = optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.descent, now=True)
+  grids = (optimiser.distance_grids(pc1_BxNx3, pc2_BxMx3, chosen.descent, now=True)
+           if runs("rigid clusters") else None)
   k = max(chosen.descent.neighbours, chosen.polish.neighbours, chosen.clusters.neighbours)
   graph = neighbours.knn_now(pc1_BxNx3, pc1_BxNx3, k + 1, search)  # each point first
   nbr = lambda settings: graph[:, :, 1:settings.neighbours + 1]
   clock("grid and kNN graph", grids, graph)
-  flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.descent, grids=grids,
-                                  nbr_BxNxK=nbr(chosen.descent))
-  clock("descent", flow)
-  if chosen.rigid_steps:
+  if runs("descent"):
+    flow, info = optimiser.optimise(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen.descent, grids=grids,
+                                    nbr_BxNxK=nbr(chosen.descent))
+    clock("descent", flow)
+  else:
+    flow, info = resume[1], None
+  if chosen.rigid_steps and runs("rigid clusters"):
     labels, fitted = _rigid_stage(pc1_BxNx3, pc2_BxMx3, flow, grids,
                                   graph[:, :, :chosen.clusters.neighbours + 1], chosen)
     clock("rigid clusters", fitted)
@@ -178,7 +195,7 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
       fitted = _choose(labels, flow, fitted, pc1_BxNx3, pc2_BxMx3, matches, chosen.descent.truncate)
     flow = guarded(labels, fitted, flow)
     clock("rigid clusters", flow)
-  if chosen.polish.steps:
+  if chosen.polish.steps and runs("polish"):
     polished = optimiser.optimise_host_loop(flow, pc1_BxNx3, pc2_BxMx3, chosen.polish,
                                             nbr_BxNxK=nbr(chosen.polish))[0]
     if guarded.active:
@@ -187,7 +204,7 @@ def optimise_flow(init_BxNx3, pc1_BxNx3, pc2_BxMx3, chosen: Optimise, seconds=No
       polished = guarded(labels, polished, flow)
     flow = polished
     clock("polish", flow)
-  if chosen.bodies is not None:
+  if chosen.bodies is not None and runs("rigid bodies"):
     fitted, motion_of = rigid_bodies_flow(pc1_BxNx3, pc2_BxMx3, flow, chosen.bodies)
     flow = guarded(motion_of, fitted, flow)
     clock("rigid bodies", flow)

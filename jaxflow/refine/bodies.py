@@ -65,8 +65,17 @@ class Settings:
   hidden: float = 0.5  # metres: a point this far behind pc2's nearest return in its direction
   view_bin_deg: float = 1.0  # degrees: pc2's directions binned (its nearest return per bin)
   seed: int = 0
+  # The RANSAC draws: "once" for every point (a micrometre of change redraws few samples), or
+  # "each" hypothesis anew (9d35694's); the world's refit each EM round: "guarded" (kept only
+  # where pc2 supports it better) or "always" (9d35694's). Issue 69 measures both on held-out
+  # pairs (benchmarks/METHODS.md).
+  draws: str = "once"
+  world_refit: str = "guarded"
 
   def __post_init__(self):
+    for name, choices in (("draws", ("once", "each")), ("world_refit", ("guarded", "always"))):
+      if getattr(self, name) not in choices:
+        raise ValueError(f"bodies {name} must be one of {choices}, got {getattr(self, name)!r}")
     for name in ("trials", "local", "min_support", "max_bodies", "sample", "icp_points",
                  "neighbours"):
       if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
@@ -149,7 +158,7 @@ def _refit(target, evidence: groups.Evidence, pc1, pts, motion, world: bool, set
     return motion
   fitted = _icp(target, pc1[_subset(pts, settings.icp_points, rng)], motion, 10, (0.05, 0.03),
                 settings)
-  if not world:
+  if not world or settings.world_refit == "always":
     return fitted
   rule = groups.Rule(margin=0.0, min_seen=settings.min_seen)
   better = groups.beats(evidence.costs(motion.apply(pc1[pts])),
@@ -178,16 +187,22 @@ def hypotheses(pc1_Nx3, flow_Nx3, settings: Settings, rng, nbr_NxK=None):
   # order still left, each with three of its neighbours still left (the smallest of keys drawn
   # for all). A few points' support flipping by a micrometre then changes a few samples, not
   # every later draw (a pair's EPE went from 0.08 to 0.16 under 2e-5 m of change in its flow).
-  anchors, keys_NxK, cursor = rng.permutation(len(pc1_Nx3)), rng.random(nbr_NxK.shape), 0
+  once = settings.draws == "once"
+  if once:
+    anchors, keys_NxK, cursor = rng.permutation(len(pc1_Nx3)), rng.random(nbr_NxK.shape), 0
   while len(remaining) >= settings.min_support and len(found) < settings.max_bodies:
     left = np.zeros(len(pc1_Nx3), bool)
     left[remaining] = True
-    ahead = np.roll(anchors, -cursor)
-    ahead = ahead[left[ahead]][:settings.trials]
-    cursor = (cursor + settings.trials) % len(anchors)
+    if once:
+      ahead = np.roll(anchors, -cursor)
+      ahead = ahead[left[ahead]][:settings.trials]
+      cursor = (cursor + settings.trials) % len(anchors)
+    else:
+      ahead = rng.choice(remaining, settings.trials)
     near_TxK = nbr_NxK[ahead]
     usable_TxK = left[near_TxK]
-    keys = np.where(usable_TxK, keys_NxK[ahead], np.inf)
+    # Three distinct neighbours still left, uniformly: the three smallest random keys.
+    keys = np.where(usable_TxK, keys_NxK[ahead] if once else rng.random(near_TxK.shape), np.inf)
     order = np.argsort(keys, axis=1)[:, :3]
     ok = usable_TxK.sum(1) >= 3
     if not ok.any():

@@ -1,24 +1,37 @@
-"""The progress of a long optimisation on stderr (jaxflow.refine.optimiser.optimise_host_loop).
+"""The progress of long work on stderr: an optimisation's steps (`Progress`,
+jaxflow.refine.optimiser.optimise_host_loop) and work whose steps cannot be counted (`Working`:
+predict's flow of a pair, whatever the method; evaluate.py's pairs).
 
     shown = Progress("mlp optimisation", total_steps, progress=None)
     shown.update(steps_done, lambda: lowest_loss)   # after each block of steps
     shown.close()
     shown.done(steps_done)                          # the closing line, if it wrote lines
 
+    with Working("flow of a.ply (optimise)"):       # a bar, or a line every EVERY_S seconds
+      stage("descent done")                         # the stage reached, said by the Working shown
+      ...
+
 On a terminal, tqdm's bar. Off one (stderr into a log file, where a bar does not show) a run
 expected to take longer than LOG_AFTER_S writes plain, flushed lines instead: its expected time, an
 estimate from its pace over the first PACE_S seconds after its first block (which compiles), then
 a line every 10% of the steps and one when it ends. Nothing here runs inside a compiled program: the
-caller reports between the blocks it drives from Python.
+caller reports between the blocks it drives from Python. `Working` covers the rest, compiled stages
+included: a thread beside the work draws its bar (the stage, the time so far) on a terminal, and off
+one writes a plain line (the stage, the time so far) whenever EVERY_S seconds passed without a line
+of progress (a `Progress`'s lines count).
 """
 
 import sys
+import threading
 import time
 
 from tqdm import tqdm
 
 LOG_AFTER_S = 30.0
 PACE_S = 2.0
+EVERY_S = 10.0  # off a terminal, the longest silence of long work
+_last_line = [time.perf_counter()]  # when the last line of progress was written
+_working = []  # the Working now shown (the outermost: an inner one shows nothing)
 
 
 def _duration(seconds: float) -> str:
@@ -29,6 +42,65 @@ def _duration(seconds: float) -> str:
 
 def _say(line: str):
   print(line, file=sys.stderr, flush=True)
+  _last_line[0] = time.perf_counter()
+
+
+def _terminal() -> bool:
+  return getattr(sys.stderr, "isatty", lambda: False)()
+
+
+def stage(name: str):
+  """Names what the Working now shown is doing (nothing when none is)."""
+  if _working:
+    _working[0].now = name
+
+
+class Working:
+  """A context in which long work shows that it goes on (module docstring): `what` names it;
+  `done()`, when given, says how far it is (e.g. "3/64 pairs"); `progress`: True the bar, False
+  nothing, None the bar on a terminal and the lines elsewhere. Inside another Working it shows
+  nothing (the outer one does)."""
+
+  def __init__(self, what: str, done=None, progress: bool | None = None):
+    self.what, self.done, self.now = what, done, None
+    self.bar = progress is True or (progress is None and _terminal())
+    self.log = progress is None and not self.bar
+    self._stop, self._thread, self._shown = threading.Event(), None, None
+
+  def _state(self) -> str:
+    parts = [p for p in (self.now, self.done and self.done()) if p]
+    return ", ".join(parts)
+
+  def _beat(self):
+    start = time.perf_counter()
+    while not self._stop.wait(1.0 if self.bar else min(1.0, max(0.05, EVERY_S))):
+      now = time.perf_counter()
+      if self._shown is not None:
+        self._shown.set_description_str(f"{self.what}: {self._state() or 'working'}",
+                                        refresh=False)
+        self._shown.refresh()
+      elif now - max(start, _last_line[0]) >= EVERY_S:
+        _say(f"{self.what}: {self._state() or 'working'}, {_duration(now - start)} so far")
+
+  def __enter__(self):
+    if _working or not (self.bar or self.log):
+      return self
+    _working.append(self)
+    if self.bar:
+      self._shown = tqdm(desc=self.what, bar_format="{desc} [{elapsed}]", file=sys.stderr,
+                         leave=False)
+    self._thread = threading.Thread(target=self._beat, name="jaxflow-progress", daemon=True)
+    self._thread.start()
+    return self
+
+  def __exit__(self, *exc):
+    if self._thread is not None:
+      self._stop.set()
+      self._thread.join()
+      _working.remove(self)
+      if self._shown is not None:
+        self._shown.close()
+    return False
 
 
 class Progress:

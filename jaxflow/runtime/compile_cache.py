@@ -98,3 +98,22 @@ def enable(folder: str | None = None) -> str | None:
     warnings.showwarning = warnings.showwarning.shown
   warnings.showwarning = _one_line_warnings(warnings.showwarning, path)
   return None
+
+
+_SETTINGS = ("jax_enable_compilation_cache", "jax_compilation_cache_dir",
+             "jax_persistent_cache_min_compile_time_secs")
+
+
+def settings():
+  """JAX's compilation-cache settings and warnings.showwarning, as `enable` leaves them: what
+  `restore` puts back (jaxflow.cli.call runs a command in the caller's process)."""
+  return {name: getattr(jax.config, name) for name in _SETTINGS}, warnings.showwarning
+
+
+def restore(saved):
+  """Puts back what `settings()` returned; the cache is reset only where a setting changed."""
+  values, warnings.showwarning = saved
+  if any(getattr(jax.config, name) != value for name, value in values.items()):
+    for name, value in values.items():
+      jax.config.update(name, value)
+    compilation_cache.reset_cache()
