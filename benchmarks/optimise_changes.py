@@ -2,7 +2,7 @@ r"""Issue 69: optimise's changes since 9d35694, each switched by a setting, on t
 not chosen on. One line of JSON a pair, seed and variant appended to --out:
 
     python benchmarks/optimise_changes.py --set report --seeds 0-4 --variants head,no_world \
-      --out /tmp/opt69/results.jsonl [--starts /tmp/opt69/starts]
+      --out results.jsonl [--starts DIR: the network's starts, kept]
     PYTHONPATH=/tmp/old_9d35694 python benchmarks/optimise_changes.py --code old ...   # 9d35694
 
 Sets: `choose` and `report` (benchmarks/methods.FT3D_CHOOSE / FT3D_REPORT, the 21 shared FT3D
@@ -25,6 +25,7 @@ import inspect
 import json
 import pathlib
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -90,7 +91,8 @@ def main():
   parser.add_argument("--variants", default="head")
   parser.add_argument("--code", default="head", help="a label for the code run (head, old)")
   parser.add_argument("--out", required=True)
-  parser.add_argument("--starts", default="/tmp/opt69/starts")
+  parser.add_argument("--starts",
+                      default=str(pathlib.Path(tempfile.gettempdir()) / "jaxflow-optimise-starts"))
   args = parser.parse_args()
   import jax  # pylint: disable=import-outside-toplevel
   from jaxflow.data.sampling import sample_indices  # pylint: disable=import-outside-toplevel
