@@ -3,6 +3,9 @@ instance ids, from a tiny h5 file written from the documented layout (../shared/
 PandaSet files: `flow_instance_id` = 1 + the track's row in the attribute `instances`)."""
 
 import json
+import pathlib
+import subprocess
+import sys
 
 import h5py
 import numpy as np
@@ -13,6 +16,8 @@ from jaxflow.data import open_dataset
 from jaxflow.evaluation import av2_eval, movers
 
 import commands
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 VEHICLE = av2_eval.CATEGORIES.index("REGULAR_VEHICLE")
 PERSON = av2_eval.CATEGORIES.index("PEDESTRIAN")
@@ -151,3 +156,21 @@ def test_the_benchmark_takes_a_pair_backwards_with_each_track_s_inverse_motion(l
   assert (got_ids[250:255] == 4).all() and not scored[250:255].any()  # no earlier points
   assert scored[255:370].all()  # the rest of the building is scored
   assert pandaset.backward_pair(ds, 1) is None  # the last sweep carries no ids
+
+
+def test_the_pandaset_benchmark_command_runs_at_toy_size(tmp_path):
+  """The command README.md and benchmarks/REAL_SWEEPS.md show, on one generated test pair (no
+  ../shared needed): its row's recall and false alarms are its own counts' ratios."""
+  out = tmp_path / "p.json"
+  proc = subprocess.run([sys.executable, "-m", "benchmarks.pandaset", "--only", "generator",
+                         "--pairs", "1", "--directions", "forward", "--json", str(out)],
+                        cwd=ROOT, capture_output=True, text=True, timeout=600, check=False)
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  assert "| generator test, forward | CAR |" in proc.stdout, proc.stdout
+  (name, row), = json.loads(out.read_text())["rows"].items()
+  counts = row["counts"]
+  assert name == "generator test, forward" and row["pairs"] == 1 and counts["moving"] > 100
+  assert row["recall"] == pytest.approx(counts["moved"] / counts["moving"])
+  assert row["false_alarms_static_objects"] == pytest.approx(
+    counts["static_objects_moved"] / counts["static_objects"])
+  assert 0.9 <= row["recall"] <= 1 and row["false_alarms_background"] < 0.01

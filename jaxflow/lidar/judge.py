@@ -11,7 +11,7 @@ residuals in units of the pair's own noise, whose sum grows with the points (a s
 
 import numpy as np
 
-from jaxflow.geometry import groups, neighbours
+from jaxflow.geometry import groups, neighbours, rigid
 
 
 def costs(tree, points_Kx3, visibility, to2, truncate) -> np.ndarray:
@@ -56,6 +56,12 @@ def truncation(pts_Kx3, queries_Qx3, s) -> float:
   return float(np.clip(judging.spacings * spacing, judging.truncate, judging.max_truncate))
 
 
+def shift_from_above(points_Kx3, motion) -> float:
+  """How far `motion` moves the points' centre, seen from above (m)."""
+  centre = points_Kx3.mean(0)
+  return float(np.linalg.norm(motion.apply(centre[None])[0, :2] - centre[:2]))
+
+
 class Evidence:
   """pc2's local planes (frame 1; each normal from its `neighbours` nearest, computed where first
   asked) and the pair's noise: how far its static world's points lie from them. A placement's
@@ -90,28 +96,24 @@ class Evidence:
     self.noise = float(max(s.judge.noise_floor, 1.4826 * np.median(r) if len(r) else np.inf))
     return self.noise
 
-  def gains(self, points_Kx3, moved_Kx3, reach: float, s) -> np.ndarray:
-    """Per point seen in both placements: standing still's squared residual minus the moved
-    one's, each capped at `noise_cap` noises, in squared noises."""
+  def gains(self, points_Kx3, moved_Kx3, reach: float, s):
+    """(bool K: the points seen in both placements, and per such point standing still's squared
+    residual minus the moved one's, each capped at `noise_cap` noises, in squared noises)."""
     cap = s.judge.noise_cap
     seen = ~self.visibility.hidden(self.to2.apply(points_Kx3)) & ~self.visibility.hidden(
       self.to2.apply(moved_Kx3))
     still = np.minimum(self.distance(points_Kx3[seen], reach) / self.noise, cap) ** 2
     moved = np.minimum(self.distance(moved_Kx3[seen], reach) / self.noise, cap) ** 2
-    return still - moved
+    return seen, still - moved
 
   def against(self, points_Kx3, motion, reach: float, s) -> np.ndarray:
     """Bool K: the points of a slow mover whose neighbourhood (within the objects' `cell`, among
     `points_Kx3`) fits standing still better than `motion` by a noise squared a point or more on
     average: static things beside a walker or a creeping car, which a group from above joins
     to it (the mover's own faces gain, its sides gain nothing either way)."""
-    cap = s.judge.noise_cap
-    seen = ~self.visibility.hidden(self.to2.apply(points_Kx3)) & ~self.visibility.hidden(
-      self.to2.apply(motion.apply(points_Kx3)))
+    seen, gain_seen = self.gains(points_Kx3, motion.apply(points_Kx3), reach, s)
     gain = np.full(len(points_Kx3), np.nan)
-    still = np.minimum(self.distance(points_Kx3[seen], reach) / self.noise, cap) ** 2
-    moved = np.minimum(self.distance(motion.apply(points_Kx3[seen]), reach) / self.noise, cap) ** 2
-    gain[seen] = still - moved
+    gain[seen] = gain_seen
     if not seen.any():
       return np.zeros(len(points_Kx3), bool)
     near = neighbours.Tree(points_Kx3[seen]).kd.query_ball_point(points_Kx3, s.cell)
@@ -125,10 +127,9 @@ class Evidence:
     standard errors, on `min_seen` of the points seen in both placements."""
     if not s.judge.evidence or not np.isfinite(self.noise):
       return False
-    centre = points_Kx3.mean(0)
-    if np.linalg.norm(motion.apply(centre[None])[0, :2] - centre[:2]) > s.judge.slow:
+    if shift_from_above(points_Kx3, motion) > s.judge.slow:
       return False
-    gain = self.gains(points_Kx3, motion.apply(points_Kx3), reach, s)
+    gain = self.gains(points_Kx3, motion.apply(points_Kx3), reach, s)[1]
     if len(gain) < max(s.min_points // 2, s.judge.min_seen * len(points_Kx3)):
       return False
     error = gain.std() / np.sqrt(len(gain))
@@ -144,7 +145,6 @@ class Evidence:
     (Gauss-Newton, residuals gated from `reach` down to `noise_cap` noises): the search's grid
     and a bird's-eye ICP stop a slow mover a grid step short, and only its faces, a few noises
     off, say where it is. Kept only where its capped cost is lower."""
-    from jaxflow.geometry import rigid  # (a geometry type; judge stays free of it otherwise)
     best, best_cost = motion, self.cost(motion.apply(points_Kx3), reach, s)
     shift = np.array(motion.translation, np.float64)
     floor = s.judge.noise_cap * self.noise

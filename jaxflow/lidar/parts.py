@@ -38,9 +38,7 @@ def onto_what_stood(scene, pts_Kx3, fit) -> bool:
   (standing still's mean cost under `part.vacated`): a thing slid onto its neighbours. A mover
   that far has left its own place, so pc2 sees it empty, and where it lands pc1 saw nothing."""
   _, motion, truncate = fit
-  centre = pts_Kx3.mean(0)
-  shift = np.linalg.norm(motion.apply(centre[None])[0, :2] - centre[:2])
-  if shift <= np.ptp(pts_Kx3[:, :2], axis=0).max():
+  if judge.shift_from_above(pts_Kx3, motion) <= np.ptp(pts_Kx3[:, :2], axis=0).max():
     return False
   s = scene.settings
   return (judge.mean(scene.costs(pts_Kx3, truncate), s.judge.min_seen) < s.part.vacated

@@ -6,6 +6,7 @@ jaxflow.lidar.objects when `judge.evidence` is set; `scene` is its _Scene."""
 import numpy as np
 
 from jaxflow.geometry import groups
+from jaxflow.lidar import judge
 
 EVIDENCE = " (evidence)"  # a fit's name ends so where the evidence, not the margins, kept it
 
@@ -20,9 +21,8 @@ def evident(scene, pts_Kx3, motion, reach) -> bool:
 def _slow_shift(pts_Kx3, motion, s) -> bool:
   """Whether `motion` moves an object's centre at most `judge.slow` m and within its own width
   seen from above (it leaves pc2 no empty place)."""
-  centre = pts_Kx3.mean(0)
-  shift = np.linalg.norm(motion.apply(centre[None])[0, :2] - centre[:2])
-  return bool(shift <= min(s.judge.slow, np.ptp(pts_Kx3[:, :2], axis=0).max()))
+  return judge.shift_from_above(pts_Kx3, motion) <= min(s.judge.slow,
+                                                        np.ptp(pts_Kx3[:, :2], axis=0).max())
 
 
 def stays(scene, pts_Kx3, fit) -> bool:
