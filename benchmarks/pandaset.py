@@ -4,6 +4,7 @@ alarms. Prints markdown tables, writes JSON.
 
     python -m benchmarks.pandaset [--only pandaset,generator,kitti] [--runs 10-21,30-41]
         [--pairs 8] [--directions forward,backward] [--json OUT.json]
+        [--set objects.judge.evidence=150 --set objects.part.split=True]
 
 - pandaset: the two runs of ../shared/data/real_sweeps/pandaset/val (22 pairs, opensf region=sweep,
   lidar=ego: the pairs `evaluate.py --method lidar --max_points 0` scores) forward, and backward
@@ -22,8 +23,9 @@ and bucketed dynamic normalised EPE (jaxflow.evaluation.av2_eval) with movers by
 band; recall: labelled moving points (|label - ego flow| >= 0.05 m) the flow moves (|flow - ego
 flow| >= 0.05 m); false alarms: labelled static points the flow moves more than 5 cm from the ego
 flow, on static objects (a class other than background) and on the background apart.
-Seconds: the method's wall time a pair in this process (the machine is shared: the JSON and the
-closing line give the load).
+`--set FIELD=VALUE`: a setting of the lidar method (as predict's --method.lidar.FIELD=VALUE; the
+slow movers' step above). Seconds: the method's wall time a pair in this process (the machine is
+shared: the JSON and the closing line give the load).
 """
 
 import argparse
@@ -227,7 +229,11 @@ def parse_args(argv=None):
   parser.add_argument("--pairs", type=int, default=8, help="generator test pairs")
   parser.add_argument("--directions", default="forward,backward")
   parser.add_argument("--json", default=None)
+  parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                      help="a lidar method setting, as predict's --method.lidar.FIELD=VALUE")
   args = parser.parse_args(argv)
+  if any("=" not in field for field in args.set):
+    parser.error("--set takes FIELD=VALUE, e.g. objects.judge.evidence=150")
   unknown = set(args.only.split(",")) - {"pandaset", "generator", "kitti"}
   if unknown or not set(args.directions.split(",")) <= {"forward", "backward"}:
     parser.error("--only: pandaset, generator, kitti; --directions: forward, backward")
@@ -236,7 +242,8 @@ def parse_args(argv=None):
 
 def main(argv=None):
   args = parse_args(argv)
-  predictor = inference.load_predictor(method="lidar")  # predict --lidar's, its defaults
+  fields = dict(field.split("=", 1) for field in args.set)  # (checked and typed by the settings)
+  predictor = inference.load_predictor(method="lidar", method_fields=fields)  # predict --lidar's
   tallies, named_rows, start = {}, [], time.perf_counter()
   only = args.only.split(",")
   if "pandaset" in only:

@@ -72,14 +72,14 @@ def smoke_checkpoint(tmp_path_factory):
 # --no-loadscope-reorder` (pyproject.toml) the workers take the files in this order, so the
 # last files to start are short ones and the workers finish together (xdist's default order, by
 # the number of tests in a file, left the few-test files of minutes each for the end).
-LONGEST_FIRST = (
-  "test_methods.py", "test_method_matrix.py", "test_distributed.py", "test_gpu_round.py",
-  "test_docs.py", "test_model.py",
-  "test_two_stage.py", "test_training.py", "test_resume.py", "test_predict.py",
-  "test_evaluation.py", "test_cli.py", "test_precision.py", "test_install.py",
-  "test_compile_cache.py", "test_ops.py",
-  "test_search.py", "test_pvraft_fidelity.py", "test_gradients.py", "test_submission.py",
-  "test_determinism.py", "test_viewer.py")
+LONGEST_FIRST = (  # (by their seconds in a whole run, empty cache, 2026-12-07: benchmarks/SUITE.md)
+  "test_model.py", "test_method_matrix.py", "test_gpu_round.py", "test_training.py",
+  "test_two_stage.py", "test_distributed.py", "test_resume.py", "test_methods.py",
+  "test_network_start.py", "test_docs.py", "test_predict.py", "test_ops.py", "test_precision.py",
+  "test_gpu_script.py", "test_install.py", "test_pvraft_fidelity.py", "test_compile_cache.py",
+  "test_real_sweeps.py", "test_evaluation.py", "test_first_hour.py", "test_submission.py",
+  "test_optimise_guard.py", "test_sweep.py", "test_cli.py", "test_gradients.py",
+  "test_slow_movers.py", "test_search.py", "test_sweeps_bench.py", "test_yardstick.py")
 
 
 def pytest_collection_modifyitems(items):

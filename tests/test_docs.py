@@ -1,18 +1,17 @@
 """The docs say what the code does: every command of README.md and docs/*.md runs at toy size (or
 is listed below with the reason it cannot), and the Python blocks run as written."""
 
-import concurrent.futures
 import contextlib
 import io
-import os
 import re
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+import commands
 
 ROOT = Path(__file__).absolute().parent.parent
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -166,23 +165,23 @@ def _this_python(argv: list[str]) -> list[str]:
   return [sys.executable, *argv[1:]] if argv and argv[0] in ("python", "python3") else argv
 
 
-def _run(argv, cwd):
-  env = {**os.environ, "JAX_PLATFORMS": "cpu",
-         "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-  p = subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
-  return p.returncode, p.stdout, p.stderr
-
-
-# Two commands at a time: all ~35 at once (each a jax process of ~1-2.5 GB) crowd a 2-core
-# machine and slow the other xdist worker's tests.
-PARALLEL = 2
+def _run(argv, cwd) -> tuple[int, str, str]:
+  """(exit code, stdout, stderr) of a documented command's toy argv, run in this process
+  (tests/commands.py): the commands share one import of jax and their compiled programs. The
+  command as a shell starts it (console scripts, `python -m`) is tests/test_install.py's and
+  tests/test_cli.py's subject, not this file's."""
+  from jaxflow import evaluate, nsfp, predict, train  # pylint: disable=import-outside-toplevel
+  tool = argv[2] if argv[1] == "-m" else Path(argv[1]).name
+  entry = {"jaxflow.predict": predict.run, "jaxflow.nsfp": nsfp.run, "evaluate.py": evaluate.run,
+           "train.py": train.run}[tool]
+  args = argv[3:] if argv[1] == "-m" else argv[2:]
+  done = commands.run(entry, *args, cwd=cwd, prog=argv[1] if argv[1] != "-m" else None)
+  return done.returncode, done.stdout, done.stderr
 
 
 def _run_all(jobs: dict) -> dict:
-  """{key: (returncode, stdout, stderr)} of {key: (argv, cwd)}, PARALLEL at a time."""
-  with concurrent.futures.ThreadPoolExecutor(PARALLEL) as pool:
-    futures = {k: pool.submit(_run, argv, cwd) for k, (argv, cwd) in jobs.items()}
-    return {k: f.result() for k, f in futures.items()}
+  """{key: (returncode, stdout, stderr)} of {key: (argv, cwd)}, one after another."""
+  return {k: _run(argv, cwd) for k, (argv, cwd) in jobs.items()}
 
 
 def _toy_key(command: str, checkpoint: Path) -> tuple:
@@ -198,16 +197,16 @@ def _toy_key(command: str, checkpoint: Path) -> tuple:
 
 @pytest.mark.slow
 def test_every_documented_command_runs_at_toy_size(tmp_path):
-  commands = [(w, c) for w, c in every_command() if plan(c)[0] != "skip"]
-  main_job = next(c for _, c in commands if plan(c)[0] == "run" and "train.py" in c)
+  documented = [(w, c) for w, c in every_command() if plan(c)[0] != "skip"]
+  main_job = next(c for _, c in documented if plan(c)[0] == "run" and "train.py" in c)
   done = _run(toy_args(main_job, tmp_path, None), tmp_path)
   assert done[0] == 0, done[2][-2000:]  # its toy run is the checkpoint of the other commands
   argv = shlex.split(main_job)
   checkpoint = tmp_path / Path(argv[argv.index("--workdir") + 1]).name
   jobs = {(w, c): (_this_python(shlex.split(c.replace("[", "").replace("]", "")))
-                   + ["--print_config"], ROOT) for w, c in commands if plan(c)[0] == "config"}
+                   + ["--print_config"], ROOT) for w, c in documented if plan(c)[0] == "config"}
   seen = {_toy_key(main_job, checkpoint)}  # the main job ran above
-  for i, (where, command) in enumerate(c for c in commands if plan(c[1])[0] == "run"):
+  for i, (where, command) in enumerate(c for c in documented if plan(c[1])[0] == "run"):
     same = _toy_key(command, checkpoint)
     if same in seen:  # e.g. the main job in README.md and docs/training.md: run once
       continue

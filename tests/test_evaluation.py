@@ -93,6 +93,35 @@ def test_model_results_match_a_direct_computation(workdir):
   assert got["pairs"] == 3 and got["ms_per_pair"] > 0
 
 
+def test_a_second_evaluation_of_an_equal_model_traces_nothing(workdir):
+  """The network is traced once a process: a second evaluate() with a model built again from the
+  same config (evaluate.py's commands in one process, a notebook's second call) reuses it, also
+  rotated from a z-up dataset; a model with other fields is traced anew."""
+  state, config, _ = checkpointing.restore_checkpoint(workdir)
+  y_up = open_dataset("synthetic_lidar:2", split="test")
+  z_up = open_dataset("synthetic_sweep:2", split="test")
+  assert (y_up.up, z_up.up) == ("y", "z")
+  traces = []
+  listener = lambda event, _, **kw: event.endswith("trace_duration") and traces.append(event)
+  jax.monitoring.register_event_duration_secs_listener(listener)
+
+  def run(model_config, dataset):
+    before = len(traces)  # (3 iterations: no other test of this process evaluates so)
+    evaluator.evaluate(build_model(model_config), state.params, dataset, num_points=64,
+                       batch_size=2, num_iters=3)
+    return len(traces) - before
+
+  try:
+    assert run(config.model, y_up) > 0 and run(config.model, y_up) == 0
+    run(config.model, z_up)
+    assert run(config.model, z_up) == 0
+    other = config.model.copy_and_resolve_references()
+    other.truncate_k = config.model.truncate_k // 2
+    assert run(other, y_up) > 0
+  finally:
+    jax.monitoring.unregister_event_duration_listener(listener)
+
+
 def test_an_old_config_with_test_time_is_refused_naming_the_method(workdir):
   config = default.get_config("smoke")
   with config.unlocked():

@@ -89,11 +89,20 @@ def in_frame(predict, up: str, to: str = MODEL_UP, jitted: bool = False):
       return (out[0][..., back], *out[1:])
     return out[..., back]
 
-  if not jitted:
-    return rotated
+  return _jitted(rotated, (predict, up, to)) if jitted else rotated
+
+
+_JITTED = {}  # (predict, up, to) -> the jitted rotation: its traces reused by later evaluations
+
+
+def _jitted(rotated, key):
   import jax  # pylint: disable=import-outside-toplevel
 
-  return jax.jit(rotated)
+  if key not in _JITTED:
+    if len(_JITTED) >= 16:  # (the oldest dropped: a process evaluating many models)
+      del _JITTED[next(iter(_JITTED))]
+    _JITTED[key] = jax.jit(rotated)
+  return _JITTED[key]
 
 
 # A street scene is flat along its up axis: a LiDAR sweep spans metres in height and tens of metres

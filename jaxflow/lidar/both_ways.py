@@ -24,7 +24,7 @@ from concurrent import futures
 import numpy as np
 
 from jaxflow.geometry import neighbours, rigid
-from jaxflow.lidar import judge, objects, parts
+from jaxflow.lidar import judge, objects, parts, slow
 from jaxflow.lidar.settings import DEFAULTS
 
 
@@ -102,4 +102,4 @@ def _offer(forward, backward, idx2, motion2: rigid.Motion, above1, s):
                           forward.scene.costs(motion.apply(pts), truncate), s):
     forward.take_over(idx, fit)
   elif still and evidence is not None and evidence.beats_still(pts, motion, truncate, s):
-    forward.take_over(idx, ("both ways" + objects.EVIDENCE, motion, truncate))
+    forward.take_over(idx, ("both ways" + slow.EVIDENCE, motion, truncate))

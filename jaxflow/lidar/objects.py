@@ -174,8 +174,8 @@ def _fit_object(scene: _Scene, pts_Kx3, given_Kx3, rng, vote=None):
   refit = _bev_icp(scene.target, pts_Kx3, best, s)  # chosen on halves: now fitted on all points
   if best_name.endswith(slow.EVIDENCE):  # a slow mover: its faces say where
     plane_fit = scene.evidence.refine(pts_Kx3, refit, truncate, s)
-    if plane_fit is not refit and scene.plausible(plane_fit, pts_Kx3):
-      return best_name, plane_fit, truncate
+    kept = slow.settled(scene, pts_Kx3, (plane_fit, refit, best), truncate)
+    return None if kept is None else (best_name, kept, truncate)
   if best_name.endswith("along"):  # a flat side: the refit slides along it, the ends say where
     refit = along.settle(scene.target, pts_Kx3, refit, vote, s)
   if scene.plausible(refit, pts_Kx3) and judge.mean(

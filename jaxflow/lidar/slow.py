@@ -33,12 +33,21 @@ def stays(scene, pts_Kx3, fit) -> bool:
   return _slow_shift(pts_Kx3, motion, scene.settings) and evident(scene, pts_Kx3, motion, truncate)
 
 
+def settled(scene, pts_Kx3, motions, truncate):
+  """The first of `motions` (the most refined first) that is plausible and that the evidence of
+  all of `pts_Kx3` keeps, or None: a refinement is judged again, as a new motion (it may have
+  run off past standing still, or beyond `judge.slow`)."""
+  return next((m for m in motions if scene.plausible(m, pts_Kx3)
+               and evident(scene, pts_Kx3, m, truncate)), None)
+
+
 def evident_fit(scene, pts_Kx3, found):
-  """A part's fit kept by the evidence: named so, its motion refined on its faces."""
+  """A part's fit kept by the evidence (`stays`): named so, its motion refined on its faces where
+  the refined motion is kept by the evidence too."""
   name, motion, truncate = found
   if not name.endswith(EVIDENCE):
     refined = scene.evidence.refine(pts_Kx3, motion, truncate, scene.settings)
-    motion = refined if scene.plausible(refined, pts_Kx3) else motion
+    motion = settled(scene, pts_Kx3, (refined,), truncate) or motion
   return name if name.endswith(EVIDENCE) else name + EVIDENCE, motion, truncate
 
 

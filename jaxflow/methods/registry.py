@@ -15,6 +15,7 @@ its properties (interface.Method), never its name.
 """
 
 import dataclasses
+import functools
 
 import jax
 import numpy as np
@@ -137,7 +138,16 @@ def build(method: str, network_for, chosen=None, with_info: bool = False):
 def model_predict_fn(model, num_iters: int, refine: bool, method: str = "network",
                      method_settings=None, with_info: bool = False):
   """(params, pc1, pc2) -> flow B x N x 3 of `method` (flow_fn; model None for the methods without
-  a network), with `with_info` (flow, info)."""
+  a network), with `with_info` (flow, info). The same arguments give the same function, so a
+  second evaluation or prediction of a model in one process reuses its traced and compiled
+  programs (a model and settings are frozen dataclasses, equal when their fields are)."""
+  return _model_predict_fn(model, num_iters, refine, method, get(method), method_settings,
+                           with_info)
+
+
+@functools.lru_cache(maxsize=16)
+def _model_predict_fn(model, num_iters, refine, method, registered, method_settings, with_info):
+  del registered  # (in the key: a method registered again under its name is built again)
   return build(method, network_for(model, num_iters, refine), method_settings, with_info)
 
 
