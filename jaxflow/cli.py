@@ -55,6 +55,23 @@ def guard(main: Callable[..., Any], *args, **kwargs):
     fail(str(e))
 
 
+def positionals(argv, switches) -> list[str]:
+  """argv's positional arguments, before absl parses it: a flag but `switches` (--NAME, --noNAME)
+  given without "=" takes the next argument (a switch left out only hides the one after it)."""
+  found, args, takes_value = [], list(argv[1:]), False
+  for i, arg in enumerate(args):
+    if takes_value:
+      takes_value = False
+    elif arg == "--":
+      return found + args[i + 1:]
+    elif arg.startswith("-") and arg != "-":
+      name = arg.lstrip("-")
+      takes_value = "=" not in name and not {name, name.removeprefix("no")} & set(switches)
+    else:
+      found.append(arg)
+  return found
+
+
 def _write_and_exit(text: str):
   """Prints `text` to stdout and exits with 0; a reader that closed the pipe (`| head`) is fine."""
   try:

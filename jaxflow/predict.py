@@ -70,33 +70,38 @@ of every pair).
 Broken input (a missing or unreadable file, a wrong number of columns, no finite point, fewer points
 than the model's neighbourhood config.model.knn or, with --lidar, than the pipeline's 90 points a
 sweep, jaxflow.lidar.sweep.min_points) prints one line naming the file and the problem and exits
-with code 2.
+with code 2; a missing or empty file, or a folder, before jax loads (in a fraction of a second).
 """
 
 import pathlib
 import sys
 
+import numpy as np
+
 from jaxflow import cli
+from jaxflow.data import pointfiles
+from jaxflow.errors import ConfigError
 from jaxflow.evaluation import export
 
 # The output paths of one pair (--out: _outputs), checked before any work: (suffixes, a folder).
 OUTPUTS = {"render": ((".png", ".html"), False), "ego_out": ((), False),
            "save_flows": ((), True), "submission": ((), True)}
-if __name__ == "__main__":  # before jax loads (seconds on a CPU): a wrong path is said at once
-  cli.guard(export.check_outputs, export.outputs_in_argv(sys.argv, OUTPUTS), make=False)
-
-# pylint: disable=wrong-import-position
-import numpy as np
-
-from jaxflow import inference
-from jaxflow.errors import ConfigError
-from jaxflow.evaluation import submission
-from jaxflow.geometry import frames
-from jaxflow.lidar import sweep
-from jaxflow.methods import registry
+# The flags of predict that take no value (the others take the argument after them).
+SWITCHES = ("lidar", "ground_limits", "full", "print_config", "deterministic", "help", "helpfull",
+            "helpshort")
 
 
-def _define_flags(default_method: str = inference.DEFAULT_METHOD):
+def _check_paths_first(argv):
+  """The output paths and the point files named in argv, checked before jax loads (seconds on a
+  CPU; imports below are in the functions that need them for that reason): a wrong path is said at
+  once, one line and exit 2 (after a renamed flag's)."""
+  cli.check_renamed(argv, cli.RENAMED)
+  cli.guard(export.check_outputs, export.outputs_in_argv(argv, OUTPUTS), make=False)
+  for path in cli.positionals(argv, SWITCHES):  # a missing, empty or not a file
+    cli.guard(pointfiles.check_file, path)
+
+
+def _define_flags(default_method: str):
   from absl import flags  # pylint: disable=import-outside-toplevel
   from ml_collections import config_flags  # pylint: disable=import-outside-toplevel
 
@@ -137,6 +142,10 @@ def _define_flags(default_method: str = inference.DEFAULT_METHOD):
 def sweep_hint(pc1_Nx3, up: str | None, method: str) -> str | None:
   """A first, short note when pc1 looks like a raw 360-degree sweep (flat along an axis, points all
   around it) and `method` is not the raw-sweep one (None otherwise): said before the work."""
+  from jaxflow.geometry import frames  # pylint: disable=import-outside-toplevel
+  from jaxflow.lidar import sweep  # pylint: disable=import-outside-toplevel
+  from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
+
   if registry.get(method).raw_sweeps:
     return None
   axis = up or frames.flat_axis(pc1_Nx3)[0]
@@ -160,6 +169,8 @@ def _used(name: str, n: int, max_points: int | None) -> str:
 
 def _how(prediction, methods, num_iters: int, max_points: int | None) -> str:
   """What ran, for the closing message; `methods`: cli.run_methods's (a raw-sweep method first)."""
+  from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
+
   name, chosen = methods[-1]
   found = prediction.sweep
   if found is not None and found.ego.start != "flow_fn":  # a 360-degree sweep: the pipeline's fits
@@ -197,6 +208,9 @@ def _outputs(FLAGS, raw_sweeps: bool) -> pathlib.Path:
 
 def _write(FLAGS, out, paths, pc1, rows1, prediction) -> list:
   """Writes the flow (--out, --save_flows, --submission, --ego_out): the files written."""
+  from jaxflow import inference  # pylint: disable=import-outside-toplevel
+  from jaxflow.evaluation import submission  # pylint: disable=import-outside-toplevel
+
   flow_rows = inference.file_rows(prediction.flow, rows1)  # one row per row of PC1's file
   written = []
   if FLAGS.out:
@@ -214,6 +228,8 @@ def _write(FLAGS, out, paths, pc1, rows1, prediction) -> list:
 def main(argv):
   from absl import flags  # pylint: disable=import-outside-toplevel
   from absl import logging as absl_logging  # pylint: disable=import-outside-toplevel
+  from jaxflow import inference  # pylint: disable=import-outside-toplevel
+  from jaxflow.methods import registry  # pylint: disable=import-outside-toplevel
 
   FLAGS = flags.FLAGS
   if not FLAGS["verbosity"].present:  # orbax warns that a read-only checkpoint is read-only
@@ -270,11 +286,14 @@ def main(argv):
     print(f"{FLAGS.render}: {what} of the pair and its flow", file=sys.stderr)
 
 
-def run(default_method: str = inference.DEFAULT_METHOD, description: str | None = None):
-  """The console script `jaxflow-predict` (`python -m jaxflow.nsfp`: default_method nsfp)."""
-  cli.run(main, lambda: _define_flags(default_method),
-          {"config": cli.EVAL_CONFIG}, description=description)
+def run(default_method: str | None = None, description: str | None = None):
+  """The console script `jaxflow-predict` (`python -m jaxflow.nsfp`: default_method nsfp; None:
+  inference.DEFAULT_METHOD, optimise)."""
+  _check_paths_first(sys.argv)
+  from jaxflow import inference  # pylint: disable=import-outside-toplevel
 
+  cli.run(main, lambda: _define_flags(default_method or inference.DEFAULT_METHOD),
+          {"config": cli.EVAL_CONFIG}, description=description)
 
 if __name__ == "__main__":
   run()

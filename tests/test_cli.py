@@ -211,6 +211,33 @@ def test_print_config_and_help_of_train_py_answer_without_loading_jax():
     assert proc.returncode == 0 and "jax loaded: False" in proc.stderr, proc.stderr[-2000:]
 
 
+def test_predict_says_a_missing_or_empty_point_file_without_loading_jax(tmp_path):
+  """The console script and `python -m`: a wrong point file is said before jax loads (5791fe8
+  imported jax and the methods first, ~3 s on a CPU), as the in-process command says it."""
+  (tmp_path / "empty.npy").touch()
+  (tmp_path / "pc.npy").write_bytes(b"x")
+  cases = [(["--max_points", "64", f"{tmp_path}/pc.npy", f"{tmp_path}/no.npy"],
+            f"{tmp_path}/no.npy: missing file"),
+           (["--lidar", str(tmp_path), f"{tmp_path}/pc.npy", "--out", "f.npy"],
+            f"{tmp_path}: not a regular file"),
+           (["--out", "f.npy", "--", f"{tmp_path}/empty.npy", "b.npy"],
+            f"{tmp_path}/empty.npy: empty file")]
+  for argv, error in cases:
+    proc = python(script=textwrap.dedent(f"""
+      import atexit, sys
+      atexit.register(lambda: print("jax loaded:", "jax" in sys.modules, file=sys.stderr))
+      sys.argv = ["jaxflow-predict", *{argv!r}]
+      from jaxflow import predict
+      predict.run()
+    """))
+    *said, loaded = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and loaded == "jax loaded: False", proc.stderr[-2000:]
+    assert said == [f"error: {error}"], said
+    assert commands.run(predict.run, *argv, cwd=tmp_path).stderr.strip() == said[0]
+  assert cli.positionals(["p", "--out", "o.npy", "a", "--nolidar", "b", "--up=z", "-v", "1", "c",
+                          "--", "--d"], ("lidar",)) == ["a", "b", "c", "--d"]
+
+
 def test_configs_path_falls_back_to_the_package(tmp_path, monkeypatch):
   monkeypatch.chdir(tmp_path)  # no configs/ here: the package's
   assert configfile.resolve("configs/default.py:smoke") == (

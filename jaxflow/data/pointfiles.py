@@ -80,7 +80,7 @@ def drop_nonfinite(array, finite_N, path, what: str = "points"):
 def load_npy(path) -> np.ndarray:
   """np.load with every failure (missing, empty, truncated, pickled) reported as DataError."""
   path = pathlib.Path(path)
-  _check_file(path)
+  check_file(path)
   try:
     array = np.load(path, allow_pickle=False)
   except (ValueError, EOFError, OSError) as e:
@@ -101,7 +101,7 @@ def read_points(path, columns: int | None = None, rows: bool = False) -> np.ndar
   integer = isinstance(columns, (int, np.integer)) and not isinstance(columns, bool)
   if columns is not None and (not integer or columns < 3):
     raise ConfigError(f"--columns must be an integer >= 3 (x y z first), got {columns!r}")
-  _check_file(path)
+  check_file(path)
   suffix = path.suffix.lower()
   if suffix not in _READERS:
     raise DataError(path, f"unknown point file type {suffix or '(none)'!r}; expected one of "
@@ -111,7 +111,9 @@ def read_points(path, columns: int | None = None, rows: bool = False) -> np.ndar
   return check_cloud(_READERS[suffix](path), path, extra_columns=True, rows=rows)
 
 
-def _check_file(path: pathlib.Path):
+def check_file(path):
+  """A DataError naming `path` unless it is a non-empty regular file (what every reader needs)."""
+  path = pathlib.Path(path)
   if not path.exists():
     raise DataError(path, "missing file")
   if not path.is_file():
