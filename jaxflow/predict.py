@@ -89,6 +89,7 @@ OUTPUTS = {"render": ((".png", ".html"), False), "ego_out": ((), False),
 # The flags of predict that take no value (the others take the argument after them).
 SWITCHES = ("lidar", "ground_limits", "full", "print_config", "deterministic", "help", "helpfull",
             "helpshort")
+READ_NO_FILES = ("--print_config", "--help", "--helpfull", "--helpshort")  # (given files or not)
 
 
 def _check_paths_first(argv):
@@ -97,6 +98,8 @@ def _check_paths_first(argv):
   once, one line and exit 2 (after a renamed flag's)."""
   cli.check_renamed(argv, cli.RENAMED)
   cli.guard(export.check_outputs, export.outputs_in_argv(argv, OUTPUTS), make=False)
+  if any(a.split("=")[0] in READ_NO_FILES for a in argv):
+    return
   for path in cli.positionals(argv, SWITCHES):  # a missing, empty or not a file
     cli.guard(pointfiles.check_file, path)
 
