@@ -18,8 +18,10 @@ from jaxflow.runtime import configfile
 import commands
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m.
-STILL = {"max_yaw_deg_per_s": 0.0, "search.per_s": 0.0, "judge.margin": 1.0}  # none beats still
+# Restrictive: no object may turn or be searched for beyond the fine search's 0.5 m, and no slow
+# motion is kept by the evidence.
+STILL = {"max_yaw_deg_per_s": 0.0, "search.per_s": 0.0, "judge.margin": 1.0,
+         "judge.evidence": 0.0}  # none beats still
 
 
 def test_the_per_second_settings_at_10_hz_are_the_per_frame_numbers():

@@ -63,19 +63,24 @@ def shift_from_above(points_Kx3, motion) -> float:
 
 
 class Evidence:
-  """pc2's local planes (frame 1; each normal from its `neighbours` nearest, computed where first
+  """pc2's local planes (frame 1; each from its `judge.plane_points` nearest, computed where first
   asked) and the pair's noise: how far its static world's points lie from them. A placement's
   evidence is its point-to-plane residuals in units of that noise, so that it grows with the
   points: a slow mover's leading and trailing faces, hundreds of points a few noises off when
-  standing still, outweigh anything that chance gives a handful of points."""
+  standing still, outweigh anything that chance gives a handful of points. Where pc2's
+  neighbours of a point lie along one line (a ring across a near car's flank: its rings are far
+  apart, its points along a ring close), there is no plane, and that point says nothing."""
 
-  def __init__(self, tree, visibility, to2, neighbours: int = 10):
-    self.tree, self.visibility, self.to2, self.neighbours = tree, visibility, to2, neighbours
+  def __init__(self, tree, visibility, to2, settings):
+    self.tree, self.visibility, self.to2 = tree, visibility, to2
+    self.neighbours, self.surface = settings.judge.plane_points, settings.judge.surface
     self.normals = np.full((len(tree.points), 3), np.nan)
+    self.planar = np.zeros(len(tree.points), bool)
     self.noise = np.nan
 
   def distance(self, points_Kx3, reach: float) -> np.ndarray:
-    """Per point: the distance to the plane of its nearest pc2 point (inf: none within `reach`)."""
+    """Per point: the distance to the plane of its nearest pc2 point (inf: none within `reach`;
+    NaN: that point's neighbours lie along a line, no plane)."""
     d, j = self.tree.nearest(points_Kx3, reach)
     near = np.isfinite(d)
     j = np.where(near, j, 0)
@@ -84,9 +89,11 @@ class Evidence:
     if len(todo):
       nb = self.tree.points[self.tree.knn(self.tree.points[todo], self.neighbours)]
       centred = nb - nb.mean(1, keepdims=True)
-      self.normals[todo] = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))[1][:, :, 0]
+      spread, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+      self.normals[todo] = axes[:, :, 0]
+      self.planar[todo] = spread[:, 1] >= self.surface * spread[:, 2]
     gap = np.abs(np.sum((points_Kx3 - self.tree.points[j]) * self.normals[j], 1))
-    return np.where(near, gap, np.inf)
+    return np.where(near, np.where(self.planar[j], gap, np.nan), np.inf)
 
   def measure_noise(self, static_Kx3, s) -> float:
     """The pair's noise (m): 1.4826 x the median point-to-plane residual of points the ego-motion
@@ -97,14 +104,18 @@ class Evidence:
     return self.noise
 
   def gains(self, points_Kx3, moved_Kx3, reach: float, s):
-    """(bool K: the points seen in both placements, and per such point standing still's squared
+    """(bool K: the points seen in both placements whose nearest pc2 point within `reach`, in
+    both, has a plane (or there is none: capped), and per such point standing still's squared
     residual minus the moved one's, each capped at `noise_cap` noises, in squared noises)."""
     cap = s.judge.noise_cap
     seen = ~self.visibility.hidden(self.to2.apply(points_Kx3)) & ~self.visibility.hidden(
       self.to2.apply(moved_Kx3))
-    still = np.minimum(self.distance(points_Kx3[seen], reach) / self.noise, cap) ** 2
-    moved = np.minimum(self.distance(moved_Kx3[seen], reach) / self.noise, cap) ** 2
-    return seen, still - moved
+    still = np.full(len(points_Kx3), np.nan)
+    moved = still.copy()
+    still[seen] = np.minimum(self.distance(points_Kx3[seen], reach) / self.noise, cap) ** 2
+    moved[seen] = np.minimum(self.distance(moved_Kx3[seen], reach) / self.noise, cap) ** 2
+    seen &= ~np.isnan(still) & ~np.isnan(moved)
+    return seen, still[seen] - moved[seen]
 
   def against(self, points_Kx3, motion, reach: float, s) -> np.ndarray:
     """Bool K: the points of a slow mover whose neighbourhood (within the objects' `cell`, among
@@ -136,8 +147,9 @@ class Evidence:
     return bool(gain.sum() >= s.judge.evidence and gain.mean() >= s.judge.significance * error)
 
   def cost(self, points_Kx3, reach: float, s) -> float:
-    """The capped squared point-to-plane residuals of `points_Kx3`, summed, in squared noises."""
-    r = self.distance(points_Kx3, reach) / self.noise
+    """The capped squared point-to-plane residuals of `points_Kx3`, summed, in squared noises (a
+    point on no plane costs the cap: a placement onto pc2's ring lines earns nothing)."""
+    r = np.nan_to_num(self.distance(points_Kx3, reach) / self.noise, nan=np.inf)
     return float(np.sum(np.minimum(r, s.judge.noise_cap) ** 2))
 
   def refine(self, points_Kx3, motion, reach: float, s, rounds: int = 8):
@@ -158,7 +170,7 @@ class Evidence:
       self.distance(moved[near], gate)  # the normals where first asked
       n = self.normals[j[near]]
       r = np.sum((moved[near] - self.tree.points[j[near]]) * n, 1)
-      use = np.abs(r) < gate
+      use = (np.abs(r) < gate) & self.planar[j[near]]
       a = n[use, :2]
       if len(a) < 3:
         break

@@ -219,7 +219,7 @@ def _scene(pc1, pc2_Mx3, ground1, ground2_M, ego_motion, s, ego_settings, rate, 
   return _Scene(target, tree, _per_point(before, above2) > s.unexplained,
                 along.before(pc1, before, ~ground1, above2, s.unexplained), visibility,
                 ego_motion, s.search.per_s / rate, s.max_yaw_deg_per_s / rate, s,
-                judge.Evidence(tree, visibility, ego_motion) if s.judge.evidence else None)
+                judge.Evidence(tree, visibility, ego_motion, s) if s.judge.evidence else None)
 
 
 @dataclasses.dataclass

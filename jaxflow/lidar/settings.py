@@ -202,9 +202,8 @@ class Part:
   size: float = 1.0  # m: a part's least width seen from above
   # A group kept still is also split at `cell` of the objects without bridging (a car creeping
   # beside a parked one is one group bridged, two apart), each piece fitted as a part; a part that
-  # does not leave its place (a slow mover) is kept on the judge's evidence instead (Judge.evidence;
-  # off by default with it)
-  split: bool = False
+  # does not leave its place (a slow mover) is kept on the judge's evidence instead (Judge.evidence)
+  split: bool = True
   # m from ego-compensated pc2 (from above): with the evidence, the seeds of a kept-still group's
   # parts (a person walking 0.1-0.15 m a frame leaves few points beyond `unexplained`)
   seeds: float = 0.08
@@ -313,12 +312,16 @@ class Judge:
   # (measured on its static world), add up to `evidence` (2 x the log-likelihood ratio of Gaussian
   # noise; each point's residual capped at `noise_cap` noises) at `significance` standard errors:
   # a car creeping 0.2 m a frame with 1,000 points is then overwhelming, 5 points are not.
-  # 0 (the default): margins alone. 150 with part.split: PandaSet's creeping cars move, but parked
-  # objects of its driving run too (benchmarks/REAL_SWEEPS.md, "Slow movers"): off until mended.
-  evidence: float = 0.0
+  # 0: margins alone (benchmarks/REAL_SWEEPS.md, "Slow movers": PandaSet's creeping cars move).
+  evidence: float = 150.0
   noise_cap: float = 3.0  # noises: a point's point-to-plane residual is capped at this
   noise_floor: float = 0.01  # m: the noise is at least this
   noise_points: int = 4000  # static points (explained from above) the noise is measured on
+  # pc2's local plane at a point: from its `plane_points` nearest, a plane where their second
+  # spread is `surface` of their first or more: a ring across a car's flank close beside the
+  # sensor is a line, no plane; residuals to it favour holding the car to the sensor's rings.
+  plane_points: int = 30
+  surface: float = 0.1  # the second spread's least share of the first (variances): a plane
   # m: the evidence decides only motions of an object's centre this short, which leave no empty
   # place (a faster mover's old place is empty: the margins see it)
   slow: float = 0.5
@@ -326,8 +329,12 @@ class Judge:
   def __post_init__(self):
     _need(self, "lidar objects.judge.", _NUMBER, "truncate", "spacings", "max_truncate", "margin",
           "relative_margin", "significance", "hidden", "hidden_fit", "min_seen", "evidence",
-          "noise_cap", "noise_floor", "slow")
-    _need(self, "lidar objects.judge.", _COUNT, "azimuth_bins", "elevation_bins", "noise_points")
+          "noise_cap", "noise_floor", "slow", "surface")
+    _need(self, "lidar objects.judge.", _COUNT, "azimuth_bins", "elevation_bins", "noise_points",
+          "plane_points")
+    if self.plane_points < 3:
+      raise ValueError(f"lidar objects.judge.plane_points must be 3 or more (a plane), got "
+                       f"{self.plane_points!r}")
 
 
 @dataclasses.dataclass(frozen=True)
