@@ -3,8 +3,8 @@ test split and KITTI's halves, both directions, movers by class and speed band b
 alarms. Prints markdown tables, writes JSON.
 
     python -m benchmarks.pandaset [--only pandaset,generator,kitti] [--runs 10-21,30-41]
-        [--pairs 8] [--directions forward,backward] [--json OUT.json]
-        [--set objects.judge.evidence=150 --set objects.part.split=True]
+        [--pairs 8] [--directions forward,backward] [--seed 0] [--json OUT.json]
+        [--set objects.judge.evidence=0 --set objects.part.split=False]
 
 - pandaset: the two runs of ../shared/data/real_sweeps/pandaset/val (22 pairs, opensf region=sweep,
   lidar=ego: the pairs `evaluate.py --method lidar --max_points 0` scores) forward, and backward
@@ -24,7 +24,8 @@ band; recall: labelled moving points (|label - ego flow| >= 0.05 m) the flow mov
 flow| >= 0.05 m); false alarms: labelled static points the flow moves more than 5 cm from the ego
 flow, on static objects (a class other than background) and on the background apart.
 `--set FIELD=VALUE`: a setting of the lidar method (as predict's --method.lidar.FIELD=VALUE; the
-slow movers' step above). Seconds: the method's wall time a pair in this process (the machine is
+slow movers' step off above); `--seed`: the method's sampling seed (its groups' random halves).
+Seconds: the method's wall time a pair in this process (the machine is
 shared: the JSON and the closing line give the load).
 """
 
@@ -145,7 +146,7 @@ def run_pandaset(args, predictor, tallies, named_rows):
         if clouds is None:
           continue
       pc1, pc2, gt, rigid_flow, category, scored, ids, table = clouds
-      flow, seconds = timed_flow(predictor, pc1, pc2)
+      flow, seconds = timed_flow(predictor, pc1, pc2, args.seed)
       tallies.setdefault(f"pandaset, {direction}", Tally()).add(
         flow, gt, rigid_flow, category, pc1[:, :2], scored, seconds)
       name = f"{pathlib.Path(path).stem}:{k0}"
@@ -163,7 +164,7 @@ def run_generator(args, predictor, tallies):
   for i in range(args.pairs):
     for direction in args.directions.split(","):
       s = ss.sweep_pair("test", i, ss.Options(reverse=direction == "backward"))
-      flow, seconds = timed_flow(predictor, s.pc1, s.pc2)
+      flow, seconds = timed_flow(predictor, s.pc1, s.pc2, args.seed)
       tallies.setdefault(f"generator test, {direction}", Tally()).add(
         flow, s.flow, s.ego_flow, s.category.astype(np.uint8), s.pc1[:, :2], s.eval_mask, seconds)
       print(f"{s.name}: {seconds:.1f} s", flush=True)
@@ -178,7 +179,7 @@ def run_kitti(args, predictor, tallies):
       pc1, pc2, motion = first, second, KITTI_MOTION
     else:
       pc1, pc2, motion = second, first, KITTI_MOTION.inverse()
-    flow, seconds = timed_flow(predictor, pc1, pc2)
+    flow, seconds = timed_flow(predictor, pc1, pc2, args.seed)
     truth = motion.flow(pc1)
     scored = (np.abs(pc1[:, :2]) <= 50.0).all(1)
     category = np.zeros(len(pc1), np.uint8)  # all static: every moved point is a false alarm
@@ -187,9 +188,9 @@ def run_kitti(args, predictor, tallies):
     print(f"KITTI halves {direction}: {seconds:.1f} s", flush=True)
 
 
-def timed_flow(predictor, pc1, pc2):
+def timed_flow(predictor, pc1, pc2, seed=0):
   start = time.perf_counter()
-  flow = predictor.predict(pc1, pc2, up="z").flow
+  flow = predictor.predict(pc1, pc2, up="z", seed=seed).flow
   return np.asarray(flow, np.float32), time.perf_counter() - start
 
 
@@ -228,6 +229,7 @@ def parse_args(argv=None):
   parser.add_argument("--runs", default="10-21,30-41", help="PandaSet runs (file name parts)")
   parser.add_argument("--pairs", type=int, default=8, help="generator test pairs")
   parser.add_argument("--directions", default="forward,backward")
+  parser.add_argument("--seed", type=int, default=0, help="the method's sampling seed")
   parser.add_argument("--json", default=None)
   parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                       help="a lidar method setting, as predict's --method.lidar.FIELD=VALUE")

@@ -183,8 +183,7 @@ class Predictor:
                                notes=(note, *inner[0].notes) if note else inner[0].notes)
 
   def _sweeps(self, pc1_Nx3, pc2_Mx3, names, up, ground_limits, sampling) -> Prediction:
-    """The Prediction of a raw-sweep method (jaxflow.methods.lidar): the method of its
-    settings, if any, on the kept points, sampled as any cloud."""
+    """A raw-sweep method's Prediction (jaxflow.methods.lidar; any method of it on kept points)."""
     settings = self.method_settings
     least = sweep.min_points(settings)  # the pipeline's own, whether or not a method runs
     clouds = [as_cloud(c, n, least, sweep.too_few(settings))
@@ -197,7 +196,8 @@ class Predictor:
     flow_fn = None if self.nested is None else lidar_method.in_frame(
       _estimate(self.nested, kept_names, sampling, inner), up,
       registry.nested(settings.method).up)
-    flow, info = lidar_method.pair_flow(flow_fn, *clouds, settings, up, names, ground_limits)
+    flow, info = lidar_method.pair_flow(flow_fn, *clouds, settings, up, names, ground_limits,
+                                        sampling["seed"])
     notes = inner[-1].notes if inner else tuple(n for n in [lopsided(*info.kept)] if n)
     notes = (up_note, *notes) if up_note else notes
     return Prediction(np.asarray(flow, np.float32), notes, info.kept, info, up)

@@ -137,3 +137,14 @@ def test_a_sweep_loads_no_checkpoint_until_the_method_runs(tmp_path):
   for pc1, pc2, start in ((s.pc1[front1], s.pc2[front2], False), (s.pc1, s.pc2, True)):
     with pytest.raises(CheckpointError, match="no_checkpoint: no such checkpoint"):  # load attempted
       lidar(start).predict(pc1, pc2, up="z")
+
+
+def test_predicts_seed_is_the_pipelines():
+  """The lidar method's flow at a seed is the pipeline's at that seed (its ego-motion's starts,
+  its groups' random halves); predict's seed once never reached it (every seed gave seed 0's)."""
+  s = ss.sweep_pair("val", 0, SMALL)
+  zero, _ = run(s, seed=0)
+  one, _ = run(s, seed=1)
+  api = inference.predict_flow(s.pc1, s.pc2, method="lidar", up="z", seed=1)
+  np.testing.assert_array_equal(api, one)
+  assert np.abs(zero - one).max() > 0.01  # the seed matters on this pair

@@ -44,12 +44,13 @@ def settings_of(settings) -> Lidar:
 
 
 def pair_flow(flow_fn, pc1_Nx3, pc2_Mx3, settings: Lidar, up: str = "z", names=("pc1", "pc2"),
-              ground_limits: bool = True):
+              ground_limits: bool = True, seed: int = 0):
   """(flow N x 3, SweepInfo) of one pair by jaxflow.lidar.sweep.raw_sweep_flow; `flow_fn(kept1,
-  kept2)` (in the clouds' frame) is `settings.method`'s flow, None without one."""
+  kept2)` (in the clouds' frame) is `settings.method`'s flow, None without one; `seed`: the
+  pipeline's draws (its ego-motion's starts, its groups' random halves)."""
   return sweep.raw_sweep_flow(flow_fn, pc1_Nx3, pc2_Mx3, up=up, names=names,
                               use_network=settings.start, ground_limits=ground_limits,
-                              settings=settings)
+                              seed=seed, settings=settings)
 
 
 def in_frame(flow_fn, up: str, method_up: str):
