@@ -160,8 +160,8 @@ def test_the_benchmark_takes_a_pair_backwards_with_each_track_s_inverse_motion(l
 
 def test_the_pandaset_benchmark_command_runs_at_toy_size(tmp_path):
   """The command README.md and benchmarks/REAL_SWEEPS.md show, on one generated test pair (no
-  ../shared needed), with a lidar setting (--set) and a seed given: its row's recall and false alarms are its
-  own counts' ratios; a --set without a value is refused."""
+  ../shared needed), with a lidar setting (--set) and a seed given: its row's recall and false
+  alarms are its own counts' ratios; a --set without a value is refused."""
   out = tmp_path / "p.json"
   proc = subprocess.run([sys.executable, "-m", "benchmarks.pandaset", "--only", "generator",
                          "--pairs", "1", "--directions", "forward", "--json", str(out),
